@@ -1,0 +1,217 @@
+"""`quicknav bench learning`: the paper's Tables 1 and 2 as a reproducible benchmark.
+
+Every row trains a preset with several seeds under a wall-clock cap, evaluates each run on 100
+held-out episodes (test bank, episode seed 0, deterministic actions), and reports mean ± std across
+seeds beside the paper's numbers, together with the oracle and random baselines on the same
+episodes. Runs are resumable: a (row, seed) whose eval.json exists is not trained again, so the
+benchmark can be completed over several sessions. Nothing is tuned on the test bank: the presets
+are fixed before evaluation.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import statistics
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from quicknav_core.config import TrainConfig
+from quicknav_core.train.presets import get_preset
+
+
+@dataclass(frozen=True)
+class Row:
+    name: str
+    table: int
+    preset: str
+    total_steps: int
+    max_minutes: float
+    paper: str  # the paper's figure for this row
+
+
+ROWS = (
+    Row("PPO (MLP 2x128)", 1, "paper-ppo", 20_000_000, 30, "reward 96.87 ± 8.50"),
+    Row("SAC (MLP 2x128)", 1, "paper-sac", 4_000_000, 30, "reward 73.52 ± 51.59"),
+    Row("TD3 (MLP 2x128)", 1, "paper-td3", 8_000_000, 30, "reward 85.99 ± 36.22"),
+    Row("PPO + MLP with memory", 2, "paper-mlp", 200_000_000, 60, "steps 214.61 ± 94.53"),
+    Row("PPO + LSTM", 2, "paper-lstm", 200_000_000, 60, "steps 126.60 ± 75.71"),
+    Row("PPO + GTrXL", 2, "paper-gtrxl", 50_000_000, 60, "steps 133.90 ± 88.94"),
+)
+EVAL_EPISODES = 100
+EVAL_SEED = 0
+
+
+def _slug(row: Row) -> str:
+    return row.preset
+
+
+def run_one(row: Row, seed: int, runs_dir: Path, scale: float = 1.0, say=print) -> dict[str, Any]:
+    """Train (or finish training) one seed of a row and evaluate it; returns its eval result."""
+    from quicknav_core.evaluate import EvalConfig, agent_from_run, evaluate
+    from quicknav_core.train.run import CHECKPOINT_DIR, CONFIG_FILE, META_FILE, train_run
+
+    run_dir = runs_dir / f"{_slug(row)}-s{seed}"
+    eval_path = run_dir / "eval" / "eval.json"
+    if eval_path.exists():
+        return json.loads(eval_path.read_text())
+    cfg: TrainConfig = get_preset(row.preset)
+    data = cfg.model_dump(mode="json")
+    data["seed"] = seed
+    data["total_steps"] = max(int(row.total_steps * scale), cfg.steps_per_update)
+    cfg = TrainConfig.model_validate(data)
+    cap_s = row.max_minutes * 60 * scale
+    started = time.perf_counter()
+    elapsed_before = 0.0
+    marker = run_dir / "train_seconds.json"
+    if marker.exists():
+        elapsed_before = json.loads(marker.read_text())["seconds"]
+
+    def stop(result) -> bool:
+        spent = elapsed_before + time.perf_counter() - started
+        marker.write_text(json.dumps({"seconds": spent}))
+        say(f"  {row.preset} s{seed}: {result.env_steps:,} steps, {spent / 60:.1f} min, "
+            f"success {result.metrics.get('success_rate', float('nan')):.0%}")  # fmt: skip
+        return spent >= cap_s
+
+    resume = (run_dir / CONFIG_FILE).exists() and (run_dir / CHECKPOINT_DIR / META_FILE).exists()
+    run_dir.mkdir(parents=True, exist_ok=True)
+    summary = train_run(cfg, run_dir, callback=stop, resume=resume)
+    agent, env_cfg, meta = agent_from_run(run_dir)
+    result, _ = evaluate(
+        env_cfg, agent, EvalConfig(episodes=EVAL_EPISODES, seed=EVAL_SEED), run_dir / "eval"
+    )
+    result["training"] = {
+        "env_steps": meta["env_steps"],
+        "minutes": json.loads(marker.read_text())["seconds"] / 60 if marker.exists() else None,
+        "stopped_by_time_cap": summary["stopped"],
+        "seed": seed,
+    }
+    eval_path.write_text(json.dumps(result, indent=2))
+    return result
+
+
+def baselines(runs_dir: Path) -> dict[str, dict[str, Any]]:
+    """Oracle and random on the Table 1 and Table 2 episodes."""
+    from quicknav_core.evaluate import EvalConfig, agent_for, evaluate
+
+    out = {}
+    for table, preset in ((1, "paper-ppo"), (2, "paper-lstm")):
+        env_cfg = get_preset(preset).env
+        for policy in ("oracle", "random"):
+            path = runs_dir / f"baseline-{policy}-table{table}" / "eval.json"
+            if path.exists():
+                out[f"{policy}-table{table}"] = json.loads(path.read_text())
+                continue
+            result, _ = evaluate(env_cfg, agent_for(policy, env_cfg),
+                                 EvalConfig(episodes=EVAL_EPISODES, seed=EVAL_SEED), path.parent)  # fmt: skip
+            out[f"{policy}-table{table}"] = result
+    return out
+
+
+def _agg(values: list[float]) -> str:
+    vals = [v for v in values if v is not None and not math.isnan(v)]
+    if not vals:
+        return "n/a"
+    if len(vals) == 1:
+        return f"{vals[0]:.3g}"
+    return f"{statistics.mean(vals):.3g} ± {statistics.stdev(vals):.2g}"
+
+
+def build_report(
+    results: dict[str, list[dict[str, Any]]], base: dict[str, dict[str, Any]], seeds: int
+) -> tuple[str, dict]:
+    """Markdown + JSON of everything finished so far, and which targets are met."""
+    lines = ["# QuickNav learning benchmark: the paper's Tables 1 and 2", "",
+             f"Each row: {seeds} training seeds, each evaluated on {EVAL_EPISODES} held-out test episodes "
+             f"(episode seed {EVAL_SEED}, deterministic actions); mean ± std across seeds.", ""]  # fmt: skip
+    data: dict[str, Any] = {"rows": {}, "baselines": {}, "targets": []}
+    for table in (1, 2):
+        oracle = base.get(f"oracle-table{table}", {}).get("metrics", {})
+        oracle_steps = oracle.get("steps_to_goal_successes", {}).get("mean")
+        lines += [f"## Table {table}" + (": goal observed" if table == 1 else ": goal hidden (lidar, pose, memory)"), "",
+                  "| row | seeds done | success | SPL | steps to goal (successes) | steps (failures = 300) | "
+                  "steps / oracle | return | collisions/ep | train min | env steps | paper |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+        for row in ROWS:
+            if row.table != table:
+                continue
+            rs = results.get(row.preset, [])
+            ms = [r["metrics"] for r in rs]
+            steps = [m["steps_to_goal_successes"]["mean"] for m in ms]
+            ratio = [s / oracle_steps for s in steps] if oracle_steps else []
+            tr = [r.get("training", {}) for r in rs]
+            lines.append(
+                f"| {row.name} | {len(rs)}/{seeds} | {_agg([m['success_rate'] for m in ms])} | "
+                f"{_agg([m['spl'] for m in ms])} | {_agg(steps)} | "
+                f"{_agg([m['steps_to_goal_failures_as_limit']['mean'] for m in ms])} | {_agg(ratio)} | "
+                f"{_agg([m['return']['mean'] for m in ms])} | {_agg([m['collisions_per_episode'] for m in ms])} | "
+                f"{_agg([t.get('minutes') for t in tr])} | {_agg([t.get('env_steps') for t in tr])} | {row.paper} |"
+            )  # fmt: skip
+            data["rows"][row.preset] = {"name": row.name, "table": table, "paper": row.paper,
+                                        "runs": [{"metrics": m, "training": t} for m, t in zip(ms, tr, strict=True)]}  # fmt: skip
+        for policy in ("oracle", "random"):
+            m = base.get(f"{policy}-table{table}", {}).get("metrics")
+            if m:
+                data["baselines"][f"{policy}-table{table}"] = m
+                lines.append(
+                    f"| {policy} (baseline) | - | {m['success_rate']:.3g} | {m['spl']:.3g} | "
+                    f"{m['steps_to_goal_successes']['mean']:.3g} | {m['steps_to_goal_failures_as_limit']['mean']:.3g} | "
+                    f"{'1' if policy == 'oracle' else '-'} | {m['return']['mean']:.3g} | {m['collisions_per_episode']:.3g} | - | - | - |"
+                )  # fmt: skip
+        lines.append("")
+    # targets
+    ppo = [r["metrics"] for r in results.get("paper-ppo", [])]
+    if ppo:
+        succ = statistics.mean(m["success_rate"] for m in ppo)
+        spl_ = statistics.mean(m["spl"] for m in ppo)
+        mins = [r.get("training", {}).get("minutes") or 0 for r in results["paper-ppo"]]
+        met = succ >= 0.95 and spl_ >= 0.80 and max(mins) <= 30
+        data["targets"].append({"target": "Table 1 PPO: success >= 95%, SPL >= 0.80, <= 30 min",
+                                "measured": {"success": succ, "spl": spl_, "max_minutes": max(mins)}, "met": met})  # fmt: skip
+    best = None
+    for preset in ("paper-mlp", "paper-lstm", "paper-gtrxl"):
+        ms = [r["metrics"] for r in results.get(preset, [])]
+        if ms:
+            steps = statistics.mean(m["steps_to_goal_failures_as_limit"]["mean"] for m in ms)
+            succ = statistics.mean(m["success_rate"] for m in ms)
+            if best is None or steps < best[1]:
+                best = (preset, steps, succ)
+    if best:
+        data["targets"].append({"target": "Table 2 best memory network: <= 100 steps (failures = limit), success >= 90%, <= 60 min",
+                                "measured": {"preset": best[0], "steps": best[1], "success": best[2]},
+                                "met": best[1] <= 100 and best[2] >= 0.9})  # fmt: skip
+    lines += ["## Targets", ""]
+    for t in data["targets"]:
+        lines.append(
+            f"- {t['target']}: {'MET' if t['met'] else 'NOT met'} ({json.dumps(t['measured'])})"
+        )
+    if not data["targets"]:
+        lines.append("- no row finished yet")
+    return "\n".join(lines) + "\n", data
+
+
+def run_learning_bench(out_dir: Path, runs_dir: Path, rows: list[str] | None, seeds: int = 3,
+                       scale: float = 1.0, say=print) -> tuple[str, dict]:  # fmt: skip
+    """Train/evaluate what is missing, then write report.md and report.json into ``out_dir``."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    runs_dir.mkdir(parents=True, exist_ok=True)
+    say("baselines (oracle, random)")
+    base = baselines(runs_dir)
+    results: dict[str, list[dict[str, Any]]] = {}
+    for row in ROWS:
+        done = []
+        for seed in range(seeds):
+            path = runs_dir / f"{_slug(row)}-s{seed}" / "eval" / "eval.json"
+            if path.exists():
+                done.append(json.loads(path.read_text()))
+            elif not rows or row.preset in rows:
+                say(f"{row.name}, seed {seed}")
+                done.append(run_one(row, seed, runs_dir, scale, say))
+        results[row.preset] = done
+        markdown, data = build_report(results, base, seeds)
+        (out_dir / "report.md").write_text(markdown)
+        (out_dir / "report.json").write_text(json.dumps(data, indent=2))
+    return build_report(results, base, seeds)

@@ -1,0 +1,95 @@
+"""`quicknav bench train`: end-to-end training throughput (env steps per second, compile excluded).
+
+Each row builds the trainer of a paper preset (network sizes and hyperparameters as in the paper),
+runs one chunk to compile and warm up, then times ``chunks`` more chunks. The figure is env steps
+per wall-clock second of those chunks, gradient updates included.
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+from quicknav_core.config import TrainConfig, apply_overrides
+from quicknav_core.train.presets import get_preset
+
+# (row name, preset, chunk size in env steps)
+ROWS = (
+    ("ppo-mlp", "paper-ppo", 262_144),
+    ("sac-mlp", "paper-sac", 8_192),
+    ("td3-mlp", "paper-td3", 8_192),
+    ("rppo-mlp-memory", "paper-mlp", 262_144),
+    ("rppo-lstm", "paper-lstm", 262_144),
+    ("rppo-gtrxl", "paper-gtrxl", 262_144),
+)
+TARGETS = {"ppo-mlp": 100_000, "rppo-lstm": 30_000}
+
+
+@dataclass
+class TrainBenchRow:
+    name: str
+    preset: str
+    trainer: str
+    network: str
+    num_envs: int
+    chunk_steps: int
+    compile_and_first_chunk_s: float
+    chunk_seconds: list[float]
+    env_steps_per_s: float
+    target: float | None
+
+
+def bench_row(
+    name: str, preset: str, chunk_steps: int, chunks: int, overrides: list[str]
+) -> TrainBenchRow:
+    from quicknav_core.train.trainers import make_trainer
+
+    cfg: TrainConfig = get_preset(preset)
+    data = cfg.model_dump(mode="json")
+    data["chunk_steps"] = chunk_steps
+    data["total_steps"] = max(chunk_steps * (chunks + 1), cfg.steps_per_update)
+    cfg = apply_overrides(TrainConfig.model_validate(data), overrides)
+    trainer = make_trainer(cfg)
+    state = trainer.init_state()
+    t0 = time.perf_counter()
+    state, _ = trainer.run_chunk(state)
+    first = time.perf_counter() - t0
+    secs = []
+    for _ in range(chunks):
+        t0 = time.perf_counter()
+        state, _ = trainer.run_chunk(state)
+        secs.append(time.perf_counter() - t0)
+    rate = trainer.steps_per_chunk / statistics.median(secs)
+    return TrainBenchRow(
+        name, preset, cfg.trainer_kind, cfg.network.kind, cfg.num_envs, trainer.steps_per_chunk,
+        round(first, 3), [round(s, 4) for s in secs], rate, TARGETS.get(name),
+    )  # fmt: skip
+
+
+def run_train_bench(
+    names: list[str] | None = None,
+    chunks: int = 3,
+    overrides: list[str] | None = None,
+    progress=None,
+) -> dict[str, Any]:
+    from quicknav_core.bench import machine_info
+
+    say = progress or (lambda _m: None)
+    rows = []
+    for name, preset, chunk in ROWS:
+        if names and name not in names:
+            continue
+        say(f"{name} ({preset})")
+        rows.append(bench_row(name, preset, chunk, chunks, overrides or []))
+    return {"machine": machine_info(), "chunks": chunks, "rows": [asdict(r) for r in rows]}
+
+
+def write_report(report: dict[str, Any], out_dir: Path) -> Path:
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / "bench_train.json"
+    path.write_text(json.dumps(report, indent=2))
+    return path

@@ -1,0 +1,1 @@
+"""The QuickNav environment: a JAX (gymnax) env and its NumPy twin."""

@@ -1,0 +1,339 @@
+"""The NumPy twin of QuickNav: same semantics as the JAX env, written in NumPy alone (no JAX import).
+
+It exists to prove the JAX env's semantics (parity tests) and as the honest baseline of the
+throughput benchmark: one env, stepped from Python, vectorised NumPy inside a step (no per-cell
+Python loops). It computes in float32 so it tracks the JAX env step for step.
+
+It is a ``gymnasium.Env`` (no auto-reset): ``reset`` returns ``(obs, info)``, ``step`` returns
+``(obs, reward, terminated, truncated, info)``. ``load(walls, pos, theta, goal)`` (or
+``reset(options={"walls": ..., "pos": ..., "theta": ..., "goal": ...})``) puts it in a given room,
+pose and goal, e.g. one taken from the JAX env.
+"""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import gymnasium as gym
+import numpy as np
+
+from quicknav_core.config import EnvConfig
+from quicknav_core.env.constants import HIT_GOAL, HIT_NONE, HIT_WALL
+
+f32 = np.float32
+_BIG = f32(1e30)
+_MOVES = np.array([[1, 0], [-1, 0], [0, -1], [0, 1]], dtype=np.int64)
+_SPLIT_STREAM = {"train": 0, "test": 1}
+
+
+def carve_room_np(
+    rng: np.random.Generator, grid_size: int, target: int, step_cap: int, return_prob: float
+) -> np.ndarray:
+    """Random-walk carving (same algorithm as ``rooms.carve_room``). (g, g) bool, True = wall."""
+    walls = np.ones((grid_size, grid_size), dtype=bool)
+    centre = np.array([grid_size // 2, grid_size // 2])
+    walls[centre[0], centre[1]] = False
+    pos, free, step = centre.copy(), 1, 0
+    while free < target and step < step_cap:
+        if rng.random() < return_prob:
+            pos = centre.copy()
+        nxt = pos + _MOVES[rng.integers(4)]
+        if np.all((nxt >= 1) & (nxt <= grid_size - 2)):
+            pos = nxt
+        if walls[pos[0], pos[1]]:
+            walls[pos[0], pos[1]] = False
+            free += 1
+        step += 1
+    return walls
+
+
+def beam_angles_np(num_beams: int, fov_deg: float) -> np.ndarray:
+    """Beam angles relative to the heading (see ``lidar.beam_angles``), float32 radians."""
+    i = np.arange(num_beams, dtype=np.float64)
+    if fov_deg >= 360.0:
+        angles = 2.0 * np.pi * i / num_beams
+    elif num_beams == 1:
+        angles = np.zeros(1)
+    else:
+        fov = np.deg2rad(fov_deg)
+        angles = -0.5 * fov + fov * i / (num_beams - 1)
+    return angles.astype(f32)
+
+
+def cast_lidar_np(
+    pos: np.ndarray,
+    theta: float,
+    goal: np.ndarray,
+    walls: np.ndarray,
+    angles: np.ndarray,
+    cell: float,
+    max_range: float,
+    goal_radius: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """All beams at once over every grid-line crossing, vectorised. (ranges f32 (B,), hits int32)."""
+    g = walls.shape[0]
+    cell = f32(cell)
+    ang = (f32(theta) + angles).astype(f32)
+    dx, dy = np.cos(ang).astype(f32), np.sin(ang).astype(f32)
+    k = np.arange(1, g, dtype=f32)
+
+    def nearest(o_a, o_b, d_a, d_b, vertical):
+        d_safe = np.where(np.abs(d_a) < 1e-12, f32(1e-12), d_a).astype(f32)
+        t = ((k[None, :] * cell - o_a) * (f32(1.0) / d_safe)[:, None]).astype(f32)
+        forward = d_a[:, None] > 0
+        line = np.where(forward, k.astype(np.int64)[None, :], k.astype(np.int64)[None, :] - 1)
+        b = (o_b + t * d_b[:, None]).astype(f32)
+        other = np.clip(np.floor(b / cell).astype(np.int64), 0, g - 1)
+        is_wall = walls[other, line] if vertical else walls[line, other]
+        hit = is_wall & (t >= 0)
+        return np.where(hit, t, _BIG).min(axis=1)
+
+    t_wall = np.minimum(
+        nearest(pos[0], pos[1], dx, dy, vertical=True),
+        nearest(pos[1], pos[0], dy, dx, vertical=False),
+    )
+    fx, fy = f32(goal[0] - pos[0]), f32(goal[1] - pos[1])
+    proj = fx * dx + fy * dy
+    perp2 = fx * fx + fy * fy - proj * proj
+    r2 = f32(goal_radius) * f32(goal_radius)
+    half = np.sqrt(np.maximum(r2 - perp2, f32(0.0)))
+    meets = (perp2 <= r2) & (proj + half >= 0)
+    t_goal = np.where(meets, np.maximum(proj - half, f32(0.0)), _BIG)
+    t = np.minimum(t_wall, t_goal)
+    in_range = t <= f32(max_range)
+    hits = np.where(in_range, np.where(t_goal < t_wall, HIT_GOAL, HIT_WALL), HIT_NONE)
+    ranges = np.where(in_range, t, f32(max_range)).astype(f32)
+    return ranges, hits.astype(np.int32)
+
+
+def disc_overlaps_wall_np(pos: np.ndarray, walls: np.ndarray, cell: float, radius: float) -> bool:
+    """Whether a disc at ``pos`` overlaps a wall; only the 3x3 cells around it can."""
+    g = walls.shape[0]
+    cell = f32(cell)
+    row, col = (np.floor(pos[::-1] / cell)).astype(np.int64)
+    r0, c0 = int(np.clip(row - 1, 0, g - 3)), int(np.clip(col - 1, 0, g - 3))
+    block = walls[r0 : r0 + 3, c0 : c0 + 3]
+    y0 = (np.arange(r0, r0 + 3).astype(f32) * cell).astype(f32)
+    x0 = (np.arange(c0, c0 + 3).astype(f32) * cell).astype(f32)
+    gap_y = np.maximum(np.maximum(y0 - pos[1], pos[1] - (y0 + cell)), f32(0.0))
+    gap_x = np.maximum(np.maximum(x0 - pos[0], pos[0] - (x0 + cell)), f32(0.0))
+    dist2 = gap_y[:, None] ** 2 + gap_x[None, :] ** 2
+    return bool(np.any(block & (dist2 < f32(radius) * f32(radius))))
+
+
+class QuickNavNumpyEnv(gym.Env):
+    """One QuickNav env in NumPy. Same observation, action, reward and episode rules as the JAX env."""
+
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": 10}
+
+    def __init__(
+        self,
+        config: EnvConfig | None = None,
+        split: str = "train",
+        render_mode: str | None = None,
+        rooms: np.ndarray | None = None,
+    ):
+        self.config = config or EnvConfig()
+        if split not in _SPLIT_STREAM:
+            raise ValueError(f"split={split!r}: allowed values are 'train' and 'test'")
+        self.split = split
+        self.render_mode = render_mode
+        from quicknav_core.env.bounds import observation_bounds
+
+        low, high = observation_bounds(self.config)
+        self.observation_space = gym.spaces.Box(low, high, dtype=np.float32)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (2,), dtype=np.float32)
+        c = self.config
+        self._cell = f32(c.room_size / c.grid_size)
+        self._angles = beam_angles_np(c.lidar_beams, c.lidar_fov_deg)
+        self._rooms: dict[int, np.ndarray] = {}
+        self._bank_size = self.config.train_rooms if split == "train" else self.config.test_rooms
+        if rooms is not None:
+            # a given bank (e.g. the JAX env's ``params.rooms``): reset picks from these rooms
+            rooms = np.asarray(rooms, dtype=bool)
+            g = self.config.grid_size
+            if rooms.ndim != 3 or rooms.shape[1:] != (g, g):
+                raise ValueError(f"rooms has shape {rooms.shape}; expected (n, {g}, {g})")
+            self._rooms = dict(enumerate(rooms))
+            self._bank_size = len(rooms)
+        self._state: dict[str, Any] | None = None
+
+    # ---------------------------------------------------------------- rooms
+    def room(self, index: int) -> np.ndarray:
+        """Room ``index`` of the bank: a given one, or carved on first use (NumPy RNG streams)."""
+        if index not in self._rooms:
+            c = self.config
+            rng = np.random.default_rng([c.room_seed, _SPLIT_STREAM[self.split], index])
+            self._rooms[index] = carve_room_np(
+                rng, c.grid_size, c.carve_target, c.carve_step_cap, c.return_prob
+            )
+        return self._rooms[index]
+
+    # ---------------------------------------------------------------- gymnasium API
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        if options and "walls" in options:
+            obs = self.load(options["walls"], options["pos"], options["theta"], options["goal"])
+            return obs, {}
+        c = self.config
+        rng = self.np_random
+        walls = self.room(int(rng.integers(self._bank_size)))
+        g = c.grid_size
+        free = np.flatnonzero(~walls.reshape(-1))
+        s = int(rng.integers(free.size))
+        start = free[s]
+        slack = max(0.5 * float(self._cell) - c.robot_radius, 0.0)
+        pos = (np.array([start % g, start // g], f32) + f32(0.5)) * self._cell
+        pos = pos + rng.uniform(-1.0, 1.0, 2).astype(f32) * f32(slack)
+        others = np.delete(free, s)
+        cand = others[rng.integers(others.size, size=c.goal_candidates)]
+        cand_xy = (np.stack([cand % g, cand // g], axis=-1).astype(f32) + f32(0.5)) * self._cell
+        goal = cand_xy[np.argmax(((cand_xy - pos) ** 2).sum(axis=-1))]
+        theta = rng.uniform(-np.pi, np.pi)
+        return self.load(walls, pos, theta, goal), {}
+
+    def load(self, walls, pos, theta, goal) -> np.ndarray:
+        """Start an episode in a given room, pose and goal; returns the first observation."""
+        walls = np.asarray(walls, dtype=bool)
+        g = self.config.grid_size
+        if walls.shape != (g, g):
+            raise ValueError(
+                f"walls has shape {walls.shape}; expected ({g}, {g}) for grid_size={g}"
+            )
+        pos = np.asarray(pos, f32).reshape(2)
+        cell = (np.floor(pos[::-1] / self._cell)).astype(np.int64)
+        visited = np.zeros((g, g), bool)
+        visited[cell[0], cell[1]] = True
+        self._state = {
+            "walls": walls,
+            "pos": pos,
+            "theta": f32(theta),
+            "goal": np.asarray(goal, f32).reshape(2),
+            "visited": visited,
+            "cell": cell,
+            "cycle_count": 0,
+            "collisions": 0,
+            "time": 0,
+        }
+        self._cast()
+        return self._obs()
+
+    def step(self, action):
+        if self._state is None:
+            raise RuntimeError("call reset() (or load()) before step()")
+        c, s = self.config, self._state
+        a = np.asarray(action, f32).reshape(2)
+        a = np.clip(np.where(np.isnan(a), f32(0.0), a), f32(-1.0), f32(1.0)).astype(f32)
+        vmax, base, dt = f32(c.max_wheel_speed), f32(c.wheel_base), f32(c.dt)
+        left, right = a[0] * vmax, a[1] * vmax
+        v = f32(0.5) * (left + right)
+        omega = (right - left) / base
+        mid = f32(s["theta"] + f32(0.5) * omega * dt)
+        delta = np.array([v * dt * np.cos(mid), v * dt * np.sin(mid)], f32)
+        theta = f32(np.mod(s["theta"] + omega * dt + f32(np.pi), f32(2.0 * np.pi)) - f32(np.pi))
+
+        pos0 = s["pos"]
+        full = (pos0 + delta).astype(f32)
+        collided = self._overlaps(full)
+        if collided:
+            only_x = np.array([pos0[0] + delta[0], pos0[1]], f32)
+            only_y = np.array([pos0[0], pos0[1] + delta[1]], f32)
+            ok_x, ok_y = not self._overlaps(only_x), not self._overlaps(only_y)
+            if ok_x and ok_y:
+                pos = only_x if abs(delta[0]) >= abs(delta[1]) else only_y
+            elif ok_x:
+                pos = only_x
+            elif ok_y:
+                pos = only_y
+            else:
+                pos = pos0
+        else:
+            pos = full
+
+        g = c.grid_size
+        cell = np.clip(np.floor(pos[::-1] / self._cell).astype(np.int64), 0, g - 1)
+        entered = bool(np.any(cell != s["cell"]))
+        seen = bool(s["visited"][cell[0], cell[1]])
+        revisit = entered and seen
+        new_cell = entered and not seen
+        s["cycle_count"] += int(revisit)
+        s["visited"][cell[0], cell[1]] = True
+        dist_prev = f32(np.linalg.norm(s["goal"] - pos0))
+        dist = f32(np.linalg.norm(s["goal"] - pos))
+        goal_reached = bool(dist <= f32(c.goal_radius))
+        r = c.reward
+        if r.progress == "linear":
+            progress = (dist_prev - dist) / (vmax * dt)
+        else:
+            progress = np.sign(dist_prev - dist)
+        terms = {
+            "step": -f32(r.step_penalty),
+            "collision": -f32(collided) * f32(r.collision_penalty),
+            "cycle": -f32(min(s["cycle_count"], r.cycle_cap)) * f32(r.cycle_penalty),
+            "progress": f32(progress) * f32(r.progress_reward),
+            "goal": f32(goal_reached) * f32(r.goal_reward),
+            "exploration": f32(new_cell) * f32(r.exploration_reward),
+        }
+        total = f32(
+            terms["step"] + terms["collision"] + terms["cycle"] + terms["progress"] + terms["goal"]
+        )
+        reward = f32(total + terms["exploration"])
+        s.update(
+            pos=pos,
+            theta=theta,
+            cell=cell,
+            collisions=s["collisions"] + int(collided),
+            time=s["time"] + 1,
+        )
+        self._cast()
+        terminated = goal_reached
+        truncated = (s["time"] >= c.max_steps) and not terminated
+        info = {
+            "goal_reached": goal_reached,
+            "collision": collided,
+            "revisit": revisit,
+            "reward_terms": terms,
+        }
+        return self._obs(), float(reward), terminated, truncated, info
+
+    def render(self):
+        from quicknav_core.env.render import render_frame
+
+        return render_frame(self.snapshot(), self.config)
+
+    # ---------------------------------------------------------------- helpers
+    def snapshot(self) -> dict[str, Any]:
+        """A copy of the current state (walls, pos, theta, goal, lidar, counters)."""
+        if self._state is None:
+            raise RuntimeError("call reset() (or load()) before snapshot()")
+        return {k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in self._state.items()}
+
+    def _overlaps(self, pos: np.ndarray) -> bool:
+        return disc_overlaps_wall_np(
+            pos, self._state["walls"], self._cell, self.config.robot_radius
+        )
+
+    def _cast(self) -> None:
+        s, c = self._state, self.config
+        s["lidar_ranges"], s["lidar_hits"] = cast_lidar_np(
+            s["pos"], s["theta"], s["goal"], s["walls"], self._angles, self._cell,
+            c.lidar_max_range, c.goal_radius,
+        )  # fmt: skip
+
+    def _obs(self) -> np.ndarray:
+        s, c = self._state, self.config
+        room = f32(c.room_size)
+        parts = [
+            s["pos"] / room,
+            [np.sin(s["theta"]), np.cos(s["theta"])],
+            s["lidar_ranges"] / f32(c.lidar_max_range),
+            (s["lidar_hits"] == HIT_WALL).astype(f32),
+            (s["lidar_hits"] == HIT_GOAL).astype(f32),
+        ]
+        if c.observe_goal:
+            rel = s["goal"] - s["pos"]
+            dist = f32(np.sqrt(np.sum(rel * rel)))
+            bearing = f32(np.arctan2(rel[1], rel[0]) - s["theta"])
+            sin_b, cos_b = (np.sin(bearing), np.cos(bearing)) if dist > 0 else (0.0, 1.0)
+            parts += [s["goal"] / room, [dist / room], [sin_b], [cos_b]]
+        return np.concatenate([np.asarray(p, f32) for p in parts]).astype(f32)

@@ -1,0 +1,376 @@
+"""QuickNav: differential-drive lidar navigation in procedurally carved rooms, as a gymnax env."""
+
+from __future__ import annotations
+
+from functools import cached_property, partial
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from gymnax.environments import environment, spaces
+
+from quicknav_core.config import EnvConfig, Split
+from quicknav_core.env.bits import num_words, pack_rows, pack_rows_np, read_bit, set_bit
+from quicknav_core.env.bounds import observation_bounds
+from quicknav_core.env.constants import HIT_GOAL, HIT_WALL
+from quicknav_core.env.dynamics import drive, move_with_sliding, wheel_command
+from quicknav_core.env.lidar import cast_lidar_bits
+from quicknav_core.env.reward import reward_terms, total_reward
+from quicknav_core.env.rooms import free_cell_table, make_room_bank
+from quicknav_core.env.types import EnvParams, EnvState
+
+
+class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
+    """A disc robot with a 2-D lidar must drive to a goal in a carved grid room.
+
+    Observation (float32, flat, ``obs_dim = 4 + 3*B (+ 5 if observe_goal)``, B = lidar_beams):
+        [0:4]        x / room_size, y / room_size, sin(theta), cos(theta)
+        [4:4+B]      lidar ranges / lidar_max_range (1.0 = nothing in range)
+        [4+B:4+2B]   1.0 where the beam hit a wall
+        [4+2B:4+3B]  1.0 where the beam hit the goal
+        [4+3B:+5]    (observe_goal only) goal x / room_size, goal y / room_size,
+                     distance to goal / room_size, sin and cos of the goal bearing in the robot frame
+    Beam i points at ``heading + angle_i`` (counter-clockwise; see ``lidar.beam_angles``).
+    Action: float32 (2,) in [-1, 1] = (left, right) wheel speed / max_wheel_speed; NaN counts as 0.
+    Reward: the paper's formula (``reward.reward_terms``); terms are reported in ``info``.
+    Termination: goal reached (centre within goal_radius). Truncation: ``max_steps`` steps.
+    ``step`` auto-resets: a finished episode's next observation is the first of a new episode, and
+    ``info["final_obs"]`` holds the last observation of the finished one (if ``final_obs``).
+
+    >>> env, params = EnvConfig(grid_size=8).build("train")
+    >>> obs, state = env.reset(jax.random.PRNGKey(0), params)
+    >>> obs, state, reward, done, info = env.step(jax.random.PRNGKey(1), state, jnp.ones(2), params)
+    """
+
+    def __init__(self, config: EnvConfig):
+        super().__init__()
+        self.config = config
+        self.grid_size = config.grid_size
+        self.num_beams = config.lidar_beams
+        self.observe_goal = config.observe_goal
+        self.final_obs = config.final_obs
+
+    # Identity: jit treats the env as a static argument, so equal configs share compiled code.
+    def __hash__(self) -> int:
+        return hash(("QuickNavEnv", self.config))
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, QuickNavEnv) and other.config == self.config
+
+    @property
+    def name(self) -> str:
+        return "QuickNav"
+
+    @property
+    def obs_dim(self) -> int:
+        return self.config.obs_dim
+
+    @cached_property
+    def _default_params(self) -> EnvParams:
+        return make_params(self.config, "train")
+
+    @property
+    def default_params(self) -> EnvParams:
+        """Params with the train room bank of this env's config."""
+        return self._default_params
+
+    # ------------------------------------------------------------------ gymnax API
+    @partial(jax.jit, static_argnames=("self",))
+    def step(
+        self,
+        key: jax.Array,
+        state: EnvState,
+        action: jax.Array,
+        params: EnvParams | None = None,
+    ) -> tuple[jax.Array, EnvState, jax.Array, jax.Array, dict[str, Any]]:
+        """Step with auto-reset, casting the lidar once for the pose that is actually kept."""
+        if params is None:
+            params = self.default_params
+        # The dynamics are deterministic: the key only feeds the reset.
+        moved, reward, info = self._transition(key, state, action, params)
+        done = info["terminated"] | info["truncated"]
+        fresh = self._spawn(key, params)
+        kept = jax.tree.map(lambda a, b: jax.lax.select(done, a, b), fresh, moved)
+        kept = self._with_lidar(kept, params)
+        if self.final_obs:
+            info["final_obs"] = self.get_obs(self._with_lidar(moved, params), params)
+        return self.get_obs(kept, params), kept, reward, done, info
+
+    def step_env(
+        self, key: jax.Array, state: EnvState, action: jax.Array, params: EnvParams
+    ) -> tuple[jax.Array, EnvState, jax.Array, jax.Array, dict[str, Any]]:
+        """One transition without auto-reset."""
+        moved, reward, info = self._transition(key, state, action, params)
+        moved = self._with_lidar(moved, params)
+        done = info["terminated"] | info["truncated"]
+        return self.get_obs(moved, params), moved, reward, done, info
+
+    def reset_env(self, key: jax.Array, params: EnvParams) -> tuple[jax.Array, EnvState]:
+        """Pick a room from the bank, spawn robot and goal, cast the first lidar scan."""
+        state = self._with_lidar(self._spawn(key, params), params)
+        return self.get_obs(state, params), state
+
+    def load_state(
+        self,
+        walls: jax.Array,
+        pos: jax.Array,
+        theta: jax.Array | float,
+        goal: jax.Array,
+        params: EnvParams | None = None,
+        room_index: int = -1,
+    ) -> tuple[jax.Array, EnvState]:
+        """Start an episode in a given room, pose and goal (for tests, replays and the twin)."""
+        if params is None:
+            params = self.default_params
+        g = self.grid_size
+        walls = jnp.asarray(walls, bool)
+        if walls.shape != (g, g):
+            raise ValueError(
+                f"walls has shape {walls.shape}; expected ({g}, {g}) for grid_size={g}"
+            )
+        pos = jnp.asarray(pos, jnp.float32).reshape(2)
+        rc = jnp.clip(jnp.floor(pos[::-1] / (params.room_size / g)).astype(jnp.int32), 0, g - 1)
+        state = self._episode_start(
+            pos, theta, goal, pack_rows(walls.T), pack_rows(walls), jnp.int32(room_index), rc
+        )
+        state = self._with_lidar(state, params)
+        return self.get_obs(state, params), state
+
+    def get_obs(self, state: EnvState, params: EnvParams | None = None, key=None) -> jax.Array:
+        """Flat float32 observation (layout in the class docstring)."""
+        if params is None:
+            params = self.default_params
+        room = jnp.asarray(params.room_size, jnp.float32)
+        sin_t, cos_t = jnp.sin(state.theta), jnp.cos(state.theta)
+        parts = [
+            state.pos / room,
+            sin_t[None],
+            cos_t[None],
+            state.lidar_ranges / params.lidar_max_range,
+            (state.lidar_hits == HIT_WALL).astype(jnp.float32),
+            (state.lidar_hits == HIT_GOAL).astype(jnp.float32),
+        ]
+        if self.observe_goal:
+            rel = state.goal - state.pos
+            dist = jnp.sqrt(jnp.sum(rel * rel))
+            # the goal direction rotated into the robot frame: (cos, sin) of the bearing, no atan2
+            inv = jnp.where(dist > 0.0, 1.0 / jnp.maximum(dist, 1e-12), 0.0)
+            fwd = (cos_t * rel[0] + sin_t * rel[1]) * inv
+            left = (cos_t * rel[1] - sin_t * rel[0]) * inv
+            fwd = jnp.where(dist > 0.0, fwd, 1.0)
+            parts += [state.goal / room, (dist / room)[None], left[None], fwd[None]]
+        return jnp.concatenate(parts).astype(jnp.float32)
+
+    def is_terminal(self, state: EnvState, params: EnvParams) -> jax.Array:
+        """Goal reached or step limit hit."""
+        dist = jnp.linalg.norm(state.goal - state.pos)
+        return (dist <= params.goal_radius) | (state.time >= params.max_steps_in_episode)
+
+    def action_space(self, params: EnvParams | None = None) -> spaces.Box:
+        """(left, right) wheel commands in [-1, 1]."""
+        return spaces.Box(-1.0, 1.0, (2,), jnp.float32)
+
+    def observation_space(self, params: EnvParams | None = None) -> spaces.Box:
+        """Exact bounds of every observation entry."""
+        low, high = observation_bounds(self.config)
+        return spaces.Box(jnp.asarray(low), jnp.asarray(high), (self.obs_dim,), jnp.float32)
+
+    def state_space(self, params: EnvParams | None = None) -> spaces.Dict:
+        """Not used by trainers; provided for completeness of the gymnax API."""
+        g = self.grid_size
+        return spaces.Dict(
+            {
+                "pos": spaces.Box(0.0, self.config.room_size, (2,), jnp.float32),
+                "theta": spaces.Box(-jnp.pi, jnp.pi, (), jnp.float32),
+                "walls": spaces.Box(0, 1, (g, g), jnp.bool_),
+            }
+        )
+
+    @property
+    def num_actions(self) -> int:
+        return 2
+
+    # ------------------------------------------------------------------ internals
+    def _spawn(self, key: jax.Array, params: EnvParams) -> EnvState:
+        """A fresh episode (lidar not yet cast): room, start pose and the farthest goal candidate."""
+        g, k = self.grid_size, self.config.goal_candidates
+        cell = params.room_size / g
+        # One PRNG call for everything a reset draws (the reset runs every step under vmap).
+        u = _uniform_from_bits(hash_key_bits(key, 5 + k))
+        u_room, u_start, jitter_u, u_head, u_goal = u[0], u[1], u[2:4], u[4], u[5:]
+        n_rooms = params.rooms.shape[0]
+        room = jnp.minimum(jnp.floor(u_room * n_rooms).astype(jnp.int32), n_rooms - 1)
+        n_free = params.num_free[room]
+        # Start: a uniformly chosen free cell, uniformly placed where the disc clears the cell walls.
+        s = jnp.minimum(jnp.floor(u_start * n_free).astype(jnp.int32), n_free - 1)
+        start = params.free_cells[room, s]
+        start_rc = jnp.stack([start // g, start % g])
+        slack = jnp.maximum(0.5 * cell - params.robot_radius, 0.0)
+        pos = (start_rc[::-1].astype(jnp.float32) + 0.5) * cell + (2.0 * jitter_u - 1.0) * slack
+        # Goal: the farthest of K free cells drawn from the cells other than the start cell.
+        j = jnp.minimum(jnp.floor(u_goal * (n_free - 1)).astype(jnp.int32), n_free - 2)
+        j = j + (j >= s).astype(jnp.int32)
+        cand = params.free_cells[room, j]
+        cand_xy = (jnp.stack([cand % g, cand // g], axis=-1).astype(jnp.float32) + 0.5) * cell
+        goal = cand_xy[jnp.argmax(jnp.sum((cand_xy - pos) ** 2, axis=-1))]
+        theta = (2.0 * u_head - 1.0) * jnp.pi
+        return self._episode_start(
+            pos, theta, goal, params.room_col_bits[room], params.room_row_bits[room], room, start_rc
+        )
+
+    def _episode_start(
+        self, pos, theta, goal, col_bits, row_bits, room_index, start_rc
+    ) -> EnvState:
+        """The state at an episode's first step (lidar not yet cast, only the start cell visited)."""
+        g, b = self.grid_size, self.num_beams
+        return EnvState(
+            pos=jnp.asarray(pos, jnp.float32).reshape(2),
+            theta=jnp.asarray(theta, jnp.float32),
+            goal=jnp.asarray(goal, jnp.float32).reshape(2),
+            col_bits=col_bits,
+            row_bits=row_bits,
+            room_index=jnp.asarray(room_index, jnp.int32),
+            visited_bits=set_bit(
+                jnp.zeros((g, num_words(g)), jnp.uint32), start_rc[0], start_rc[1]
+            ),
+            cell=jnp.asarray(start_rc, jnp.int32),
+            cycle_count=jnp.int32(0),
+            collisions=jnp.int32(0),
+            lidar_ranges=jnp.zeros((b,), jnp.float32),
+            lidar_hits=jnp.zeros((b,), jnp.int32),
+            time=jnp.int32(0),
+        )
+
+    def _transition(
+        self, key: jax.Array, state: EnvState, action: jax.Array, params: EnvParams
+    ) -> tuple[EnvState, jax.Array, dict[str, Any]]:
+        """Drive, collide/slide, count revisits, reward; lidar is left stale for the caller."""
+        del key  # the dynamics are deterministic
+        g = self.grid_size
+        cell = params.room_size / g
+        command = wheel_command(action)
+        delta, theta = drive(
+            state.theta, command, params.max_wheel_speed, params.wheel_base, params.dt
+        )
+        pos, collided = move_with_sliding(
+            state.pos, delta, state.row_bits, cell, params.robot_radius
+        )
+        rc = jnp.clip(jnp.floor(pos[::-1] / cell).astype(jnp.int32), 0, g - 1)
+        entered = jnp.any(rc != state.cell)
+        seen = read_bit(state.visited_bits[rc[0]], rc[1])
+        revisit = entered & seen
+        new_cell = entered & ~seen
+        cycle_count = state.cycle_count + revisit.astype(jnp.int32)
+        visited_bits = set_bit(state.visited_bits, rc[0], rc[1])
+        dist_prev = jnp.linalg.norm(state.goal - state.pos)
+        dist = jnp.linalg.norm(state.goal - pos)
+        goal_reached = dist <= params.goal_radius
+        terms = reward_terms(collided, cycle_count, dist_prev, dist, goal_reached, params, new_cell)
+        time = state.time + 1
+        truncated = (time >= params.max_steps_in_episode) & ~goal_reached
+        moved = state.replace(
+            pos=pos,
+            theta=theta,
+            visited_bits=visited_bits,
+            cell=rc,
+            cycle_count=cycle_count,
+            collisions=state.collisions + collided.astype(jnp.int32),
+            time=time,
+        )
+        info = {
+            "terminated": goal_reached,
+            "truncated": truncated,
+            "goal_reached": goal_reached,
+            "collision": collided,
+            "revisit": revisit,
+            "reward_terms": terms,
+        }
+        return moved, total_reward(terms), info
+
+    def _with_lidar(self, state: EnvState, params: EnvParams) -> EnvState:
+        """State with the lidar scan of its current pose."""
+        ranges, hits = cast_lidar_bits(
+            state.pos,
+            state.theta,
+            state.goal,
+            state.col_bits,
+            state.row_bits,
+            self.num_beams,
+            self.config.lidar_fov_deg,
+            params.room_size / self.grid_size,
+            params.lidar_max_range,
+            params.goal_radius,
+        )
+        return state.replace(lidar_ranges=ranges, lidar_hits=hits)
+
+
+def _fmix32(x: jax.Array) -> jax.Array:
+    """MurmurHash3's 32-bit finaliser: a cheap bijection with full avalanche."""
+    x = x ^ jnp.right_shift(x, jnp.uint32(16))
+    x = x * jnp.uint32(0x85EBCA6B)
+    x = x ^ jnp.right_shift(x, jnp.uint32(13))
+    x = x * jnp.uint32(0xC2B2AE35)
+    return x ^ jnp.right_shift(x, jnp.uint32(16))
+
+
+def hash_key_bits(key: jax.Array, count: int) -> jax.Array:
+    """``count`` uint32 words derived from a PRNG key by hashing its data with a counter.
+
+    A reset runs for every env on every step under vmap (gymnax's auto-reset is a select), so its
+    randomness must be cheap: this costs a few integer ops per word instead of a Threefry block,
+    and is still a deterministic function of the key (same key, same reset).
+    """
+    data = jax.random.key_data(key) if jnp.issubdtype(key.dtype, jax.dtypes.prng_key) else key
+    data = data.reshape(-1).astype(jnp.uint32)
+    mixed = data[0]
+    for word in data[1:]:
+        mixed = _fmix32(mixed ^ _fmix32(word + jnp.uint32(0x9E3779B9)))
+    i = jnp.arange(count, dtype=jnp.uint32)
+    return _fmix32(mixed ^ _fmix32(i * jnp.uint32(0x9E3779B9) + jnp.uint32(0x632BE5AB)))
+
+
+def _uniform_from_bits(bits: jax.Array) -> jax.Array:
+    """uint32 random bits -> float32 uniform in [0, 1) (23 mantissa bits)."""
+    one_to_two = jax.lax.bitcast_convert_type(
+        jnp.right_shift(bits, jnp.uint32(9)) | jnp.uint32(0x3F800000), jnp.float32
+    )
+    return one_to_two - 1.0
+
+
+def make_params(config: EnvConfig, split: Split = "train") -> EnvParams:
+    """EnvParams for ``config`` holding the ``split`` room bank."""
+    rooms = make_room_bank(config, split)
+    free, counts = free_cell_table(rooms)
+    r = config.reward
+    f32 = np.float32
+    return EnvParams(
+        rooms=jnp.asarray(rooms),
+        room_col_bits=jnp.asarray(pack_rows_np(np.swapaxes(rooms, 1, 2))),
+        room_row_bits=jnp.asarray(pack_rows_np(rooms)),
+        free_cells=jnp.asarray(free),
+        num_free=jnp.asarray(counts),
+        room_size=f32(config.room_size),
+        robot_radius=f32(config.robot_radius),
+        max_wheel_speed=f32(config.max_wheel_speed),
+        wheel_base=f32(config.wheel_base),
+        dt=f32(config.dt),
+        lidar_max_range=f32(config.lidar_max_range),
+        goal_radius=f32(config.goal_radius),
+        max_steps_in_episode=np.int32(config.max_steps),
+        step_penalty=f32(r.step_penalty),
+        collision_penalty=f32(r.collision_penalty),
+        cycle_penalty=f32(r.cycle_penalty),
+        progress_reward=f32(r.progress_reward),
+        goal_reward=f32(r.goal_reward),
+        cycle_cap=np.int32(r.cycle_cap),
+        exploration_reward=f32(r.exploration_reward),
+        progress_linear=np.bool_(r.progress == "linear"),
+    )
+
+
+def build_env(config: EnvConfig, split: Split = "train") -> tuple[QuickNavEnv, EnvParams]:
+    """The env and its params for one split (``EnvConfig.build`` calls this)."""
+    env = QuickNavEnv(config)
+    params = env.default_params if split == "train" else make_params(config, split)
+    return env, params

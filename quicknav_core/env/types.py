@@ -1,0 +1,74 @@
+"""State and parameter pytrees of the QuickNav environment.
+
+Wall and visited grids travel bit-packed (``bits.py``): the state stays small, so copying it
+(auto-reset selects between two whole states every step) and reading it are cheap. The ``walls``
+and ``visited`` properties give the plain bool grids.
+"""
+
+from __future__ import annotations
+
+import jax
+from flax import struct
+
+from quicknav_core.env.bits import unpack_rows
+
+
+@struct.dataclass
+class EnvState:
+    """Per-environment state. All fields are JAX arrays; shapes are for one (unbatched) env."""
+
+    pos: jax.Array  # (2,) float32 robot centre (x, y) in metres
+    theta: jax.Array  # () float32 heading in radians, in [-pi, pi)
+    goal: jax.Array  # (2,) float32 goal centre (x, y) in metres
+    col_bits: jax.Array  # (grid, W) uint32 walls packed by column: bit r of col c = walls[r, c]
+    row_bits: jax.Array  # (grid, W) uint32 walls packed by row: bit c of row r = walls[r, c]
+    room_index: jax.Array  # () int32 index of the room in the bank (-1: loaded by hand)
+    visited_bits: jax.Array  # (grid, W) uint32 row-packed cells entered so far this episode
+    cell: jax.Array  # (2,) int32 (row, col) of the cell holding the robot centre
+    cycle_count: jax.Array  # () int32 C_t: steps this episode that re-entered a visited cell
+    collisions: jax.Array  # () int32 wall collisions so far this episode
+    lidar_ranges: jax.Array  # (beams,) float32 metres, capped at lidar_max_range
+    lidar_hits: jax.Array  # (beams,) int32 HIT_NONE / HIT_WALL / HIT_GOAL
+    time: jax.Array  # () int32 steps taken this episode
+
+    @property
+    def walls(self) -> jax.Array:
+        """(..., grid, grid) bool, walls[row, col], row = y index, col = x index."""
+        return unpack_rows(self.row_bits, self.row_bits.shape[-2])
+
+    @property
+    def visited(self) -> jax.Array:
+        """(..., grid, grid) bool cells entered so far this episode."""
+        return unpack_rows(self.visited_bits, self.visited_bits.shape[-2])
+
+
+@struct.dataclass
+class EnvParams:
+    """Traced parameters: numbers and the room bank. Changing them never recompiles."""
+
+    # Room bank (shapes fixed per bank)
+    rooms: jax.Array  # (rooms, grid, grid) bool
+    room_col_bits: jax.Array  # (rooms, grid, W) uint32 column-packed walls
+    room_row_bits: jax.Array  # (rooms, grid, W) uint32 row-packed walls
+    free_cells: jax.Array  # (rooms, grid*grid) int32 flat indices of free cells, padded
+    num_free: jax.Array  # (rooms,) int32 number of valid entries in free_cells
+    # Geometry and robot
+    room_size: jax.Array | float = 8.0
+    robot_radius: jax.Array | float = 0.15
+    max_wheel_speed: jax.Array | float = 1.0
+    wheel_base: jax.Array | float = 0.3
+    dt: jax.Array | float = 0.1
+    # Lidar
+    lidar_max_range: jax.Array | float = 10.0
+    # Task
+    goal_radius: jax.Array | float = 0.3
+    max_steps_in_episode: jax.Array | int = 300
+    # Reward weights
+    step_penalty: jax.Array | float = 0.1
+    collision_penalty: jax.Array | float = 10.0
+    cycle_penalty: jax.Array | float = 0.0
+    progress_reward: jax.Array | float = 1.0
+    goal_reward: jax.Array | float = 50.0
+    cycle_cap: jax.Array | int = 10
+    exploration_reward: jax.Array | float = 0.0
+    progress_linear: jax.Array | bool = False  # False: sign(d_prev - d), True: scaled difference

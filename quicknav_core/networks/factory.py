@@ -1,0 +1,38 @@
+"""Build a network module from its config."""
+
+from __future__ import annotations
+
+import flax.linen as nn
+
+from quicknav_core.config import GTrXLNetwork, LSTMNetwork, MLPNetwork
+from quicknav_core.networks.gtrxl import GTrXLPolicy
+from quicknav_core.networks.lstm import LSTMPolicy
+from quicknav_core.networks.mlp import MLPPolicy
+
+
+def make_network(config: MLPNetwork | LSTMNetwork | GTrXLNetwork, action_dim: int = 2) -> nn.Module:
+    """The Flax module for a network config (all share the recurrent interface)."""
+    if isinstance(config, MLPNetwork):
+        return MLPPolicy(
+            action_dim=action_dim, hidden_sizes=tuple(config.hidden_sizes),
+            memory_size=config.memory_size, dropout_rate=config.dropout,
+            learned_log_std=config.learned_log_std, init_log_std=config.init_log_std,
+        )  # fmt: skip
+    if isinstance(config, LSTMNetwork):
+        return LSTMPolicy(
+            action_dim=action_dim, num_layers=config.num_layers, hidden_size=config.hidden_size,
+            learned_log_std=config.learned_log_std, init_log_std=config.init_log_std,
+        )  # fmt: skip
+    if isinstance(config, GTrXLNetwork):
+        return GTrXLPolicy(
+            action_dim=action_dim, embed_size=config.embed_size, num_heads=config.num_heads,
+            head_size=config.head_size, num_layers=config.num_layers,
+            memory_length=config.memory_length, gate_bias=config.gate_bias,
+            learned_log_std=config.learned_log_std, init_log_std=config.init_log_std,
+        )  # fmt: skip
+    raise TypeError(f"unknown network config {type(config).__name__}")
+
+
+def network_is_recurrent(config) -> bool:
+    """Whether the network carries memory between steps."""
+    return not (isinstance(config, MLPNetwork) and config.memory_size == 0)

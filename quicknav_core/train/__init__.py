@@ -1,0 +1,28 @@
+"""Trainers (rejax PPO/SAC/TD3, QuickNav's recurrent PPO), run folders and presets.
+
+Names are imported lazily so that reading presets does not pull in JAX.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+_EXPORTS = {
+    "PRESETS": "quicknav_core.train.presets",
+    "get_preset": "quicknav_core.train.presets",
+    "load_run": "quicknav_core.train.run",
+    "read_metrics": "quicknav_core.train.run",
+    "train_run": "quicknav_core.train.run",
+    "Policy": "quicknav_core.train.trainers",
+    "Trainer": "quicknav_core.train.trainers",
+    "make_trainer": "quicknav_core.train.trainers",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str) -> Any:
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(_EXPORTS[name]), name)
+    raise AttributeError(f"module 'quicknav_core.train' has no attribute {name!r}")

@@ -1,0 +1,280 @@
+"""The embedded job store: one SQLite file, safe across threads and processes (WAL, immediate txns)."""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from service.jobs.models import (
+    IdempotencyConflict,
+    Job,
+    JobKind,
+    JobNotFound,
+    JobStateError,
+    JobStatus,
+    new_job,
+    request_hash,
+)
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS jobs (
+    id TEXT PRIMARY KEY,
+    kind TEXT NOT NULL,
+    status TEXT NOT NULL,
+    created_at REAL NOT NULL,
+    lease_until REAL,
+    idempotency_key TEXT UNIQUE,
+    data TEXT NOT NULL
+);
+CREATE INDEX IF NOT EXISTS jobs_status_created ON jobs (status, created_at);
+CREATE TABLE IF NOT EXISTS events (
+    job_id TEXT NOT NULL,
+    seq INTEGER NOT NULL,
+    data TEXT NOT NULL,
+    PRIMARY KEY (job_id, seq)
+);
+"""
+
+
+class SQLiteJobStore:
+    def __init__(self, path: str | Path, max_attempts: int = 3, max_events: int = 10_000):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.max_attempts = max_attempts
+        self.max_events = max_events
+        self._lock = threading.RLock()
+        self._db = sqlite3.connect(
+            self.path, check_same_thread=False, isolation_level=None, timeout=30
+        )
+        self._db.execute("PRAGMA journal_mode=WAL")
+        self._db.execute("PRAGMA busy_timeout=30000")
+        self._db.executescript(_SCHEMA)
+
+    # ------------------------------------------------------------------ helpers
+    def _tx(self):
+        store = self
+
+        class _Tx:
+            def __enter__(self):
+                store._lock.acquire()
+                store._db.execute("BEGIN IMMEDIATE")
+                return store._db
+
+            def __exit__(self, exc_type, exc, tb):
+                try:
+                    store._db.execute("ROLLBACK" if exc_type else "COMMIT")
+                finally:
+                    store._lock.release()
+                return False
+
+        return _Tx()
+
+    @staticmethod
+    def _save(db, job: Job) -> None:
+        job.updated_at = time.time()
+        db.execute(
+            "INSERT OR REPLACE INTO jobs (id, kind, status, created_at, lease_until, idempotency_key, data)"
+            " VALUES (?, ?, ?, ?, ?, ?, ?)",
+            (job.id, job.kind.value, job.status.value, job.created_at, job.lease_until,
+             job.idempotency_key, job.model_dump_json()),
+        )  # fmt: skip
+
+    @staticmethod
+    def _load(db, job_id: str) -> Job:
+        row = db.execute("SELECT data FROM jobs WHERE id = ?", (job_id,)).fetchone()
+        if row is None:
+            raise JobNotFound(job_id)
+        return Job.model_validate_json(row[0])
+
+    # ------------------------------------------------------------------ protocol
+    def submit(self, kind, request, idempotency_key=None):
+        kind = JobKind(kind)
+        with self._tx() as db:
+            if idempotency_key is not None:
+                row = db.execute(
+                    "SELECT data FROM jobs WHERE idempotency_key = ?", (idempotency_key,)
+                ).fetchone()
+                if row is not None:
+                    job = Job.model_validate_json(row[0])
+                    if job.request_hash != request_hash(kind, request):
+                        raise IdempotencyConflict(idempotency_key)
+                    return job, False
+            job = new_job(kind, request, idempotency_key, self.max_attempts)
+            self._save(db, job)
+            return job, True
+
+    def get(self, job_id):
+        with self._lock:
+            return self._load(self._db, job_id)
+
+    def list(self, status=None, kind=None, limit=50, offset=0):
+        where, args = [], []
+        if status is not None:
+            where.append("status = ?")
+            args.append(JobStatus(status).value)
+        if kind is not None:
+            where.append("kind = ?")
+            args.append(JobKind(kind).value)
+        clause = f" WHERE {' AND '.join(where)}" if where else ""
+        with self._lock:
+            total = self._db.execute(f"SELECT COUNT(*) FROM jobs{clause}", args).fetchone()[0]
+            rows = self._db.execute(
+                f"SELECT data FROM jobs{clause} ORDER BY created_at DESC LIMIT ? OFFSET ?",
+                [*args, limit, offset],
+            ).fetchall()
+        return [Job.model_validate_json(r[0]) for r in rows], total
+
+    def claim(self, worker, lease_s):
+        now = time.time()
+        with self._tx() as db:
+            while True:
+                row = db.execute(
+                    "SELECT data FROM jobs WHERE status = 'queued' ORDER BY created_at LIMIT 1"
+                ).fetchone()
+                reclaimed = False
+                if row is None:
+                    row = db.execute(
+                        "SELECT data FROM jobs WHERE status = 'running' AND lease_until < ?"
+                        " ORDER BY lease_until LIMIT 1", (now,),
+                    ).fetchone()  # fmt: skip
+                    reclaimed = row is not None
+                if row is None:
+                    return None
+                job = Job.model_validate_json(row[0])
+                if reclaimed and job.attempts >= job.max_attempts:
+                    job.status = JobStatus.failed
+                    job.error = (f"gave up after {job.attempts} attempts: the worker running it"
+                                 f" ({job.worker}) stopped renewing its lease")  # fmt: skip
+                    job.finished_at = now
+                    job.worker = None
+                    job.lease_until = None
+                    self._save(db, job)
+                    self._append(
+                        db, job.id, {"type": "failed", "status": "failed", "error": job.error}
+                    )
+                    continue
+                if reclaimed and job.cancel_requested:
+                    job.status = JobStatus.cancelled
+                    job.finished_at = now
+                    self._save(db, job)
+                    self._append(db, job.id, {"type": "cancelled", "status": "cancelled"})
+                    continue
+                job.status = JobStatus.running
+                job.worker = worker
+                job.lease_until = now + lease_s
+                job.attempts += 1
+                job.started_at = job.started_at or now
+                self._save(db, job)
+                return job
+
+    def heartbeat(self, job_id, worker, lease_s):
+        with self._tx() as db:
+            job = self._load(db, job_id)
+            if job.status != JobStatus.running or job.worker != worker:
+                return False
+            job.lease_until = time.time() + lease_s
+            self._save(db, job)
+            return True
+
+    def progress(self, job_id, worker, progress, metrics):
+        with self._tx() as db:
+            job = self._load(db, job_id)
+            if job.worker == worker and job.status == JobStatus.running:
+                job.progress = float(progress)
+                job.metrics = metrics
+                self._save(db, job)
+
+    def finish(self, job_id, worker, status, result=None, error=None):
+        status = JobStatus(status)
+        with self._tx() as db:
+            job = self._load(db, job_id)
+            if job.status.finished:
+                return job
+            if job.worker != worker:
+                raise JobStateError(f"job {job_id} is not held by worker {worker}")
+            job.status = status
+            job.result = result
+            job.error = error
+            job.finished_at = time.time()
+            job.lease_until = None
+            if status == JobStatus.succeeded:
+                job.progress = 1.0
+            self._save(db, job)
+            self._append(db, job_id, {"type": status.value, "status": status.value, "error": error,
+                                      "result": result})  # fmt: skip
+            return job
+
+    def release(self, job_id, worker):
+        with self._tx() as db:
+            job = self._load(db, job_id)
+            if job.worker != worker or job.status != JobStatus.running:
+                return
+            job.status = JobStatus.queued
+            job.worker = None
+            job.lease_until = None
+            job.attempts = max(job.attempts - 1, 0)  # a graceful hand-back is not a failed attempt
+            self._save(db, job)
+            self._append(db, job_id, {"type": "requeued", "status": "queued"})
+
+    def cancel(self, job_id):
+        with self._tx() as db:
+            job = self._load(db, job_id)
+            if job.status == JobStatus.queued:
+                job.status = JobStatus.cancelled
+                job.finished_at = time.time()
+                self._save(db, job)
+                self._append(db, job_id, {"type": "cancelled", "status": "cancelled"})
+            elif job.status == JobStatus.running and not job.cancel_requested:
+                job.cancel_requested = True
+                self._save(db, job)
+            return job
+
+    def delete(self, job_id):
+        with self._tx() as db:
+            job = self._load(db, job_id)
+            if not job.status.finished:
+                raise JobStateError(
+                    f"job {job_id} is {job.status.value}; only finished jobs can be deleted"
+                )
+            db.execute("DELETE FROM jobs WHERE id = ?", (job_id,))
+            db.execute("DELETE FROM events WHERE job_id = ?", (job_id,))
+
+    def _append(self, db, job_id: str, event: dict[str, Any]) -> int:
+        row = db.execute(
+            "SELECT COALESCE(MAX(seq), 0) FROM events WHERE job_id = ?", (job_id,)
+        ).fetchone()
+        seq = row[0] + 1
+        db.execute("INSERT INTO events (job_id, seq, data) VALUES (?, ?, ?)",
+                   (job_id, seq, json.dumps({**event, "time": time.time()})))  # fmt: skip
+        db.execute(
+            "DELETE FROM events WHERE job_id = ? AND seq <= ?", (job_id, seq - self.max_events)
+        )
+        return seq
+
+    def publish(self, job_id, event):
+        with self._tx() as db:
+            self._load(db, job_id)
+            return self._append(db, job_id, event)
+
+    def events(self, job_id, after=0, limit=1000):
+        with self._lock:
+            rows = self._db.execute(
+                "SELECT seq, data FROM events WHERE job_id = ? AND seq > ? ORDER BY seq LIMIT ?",
+                (job_id, after, limit),
+            ).fetchall()
+        return [(int(s), json.loads(d)) for s, d in rows]
+
+    def counts(self):
+        with self._lock:
+            rows = self._db.execute("SELECT status, COUNT(*) FROM jobs GROUP BY status").fetchall()
+        out = {s.value: 0 for s in JobStatus}
+        out.update({s: int(n) for s, n in rows})
+        return out
+
+    def close(self) -> None:
+        with self._lock:
+            self._db.close()

@@ -1,0 +1,67 @@
+"""Service settings from ``QUICKNAV_*`` environment variables (and an optional ``.env`` file)."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+from pydantic import Field, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class Settings(BaseSettings):
+    """Validated at start; a bad value stops the service with a message naming the variable."""
+
+    model_config = SettingsConfigDict(env_prefix="QUICKNAV_", env_file=".env", extra="ignore")
+
+    data_dir: Path = Field(Path("quicknav-data"), description="SQLite database and artifacts")
+    redis_url: str | None = Field(
+        None, description="redis://host:port/db; unset = embedded SQLite store"
+    )
+    api_token: str | None = Field(
+        None, min_length=8, description="Bearer token required on job endpoints"
+    )
+    host: str = "127.0.0.1"
+    port: int = Field(8000, ge=1, le=65535)
+    grpc_port: int = Field(50051, ge=1, le=65535)
+    max_envs: int = Field(4096, ge=1, le=1_048_576)
+    max_total_steps: int = Field(200_000_000, ge=1)
+    max_grid_size: int = Field(64, ge=4, le=128)
+    max_eval_episodes: int = Field(10_000, ge=1)
+    max_sweep_trials: int = Field(1000, ge=1)
+    max_concurrent_jobs: int = Field(1, ge=1, le=64, description="in-process worker threads")
+    lease_s: float = Field(60.0, gt=0.5, le=3600)
+    heartbeat_s: float = Field(10.0, gt=0.05, le=600)
+    max_attempts: int = Field(3, ge=1, le=100)
+    max_body_bytes: int = Field(1_000_000, ge=1024)
+    embedded_worker: bool = Field(True, description="run workers inside `quicknav serve`")
+
+    @model_validator(mode="after")
+    def _check(self) -> Settings:
+        if self.heartbeat_s >= self.lease_s:
+            raise ValueError(
+                f"QUICKNAV_HEARTBEAT_S={self.heartbeat_s} must be below QUICKNAV_LEASE_S={self.lease_s}"
+                " (a lease must be renewed before it expires)"
+            )
+        return self
+
+    @property
+    def artifacts_dir(self) -> Path:
+        return self.data_dir / "artifacts"
+
+
+@lru_cache
+def get_settings() -> Settings:
+    return Settings()
+
+
+def make_store(settings: Settings):
+    """The job store the settings ask for: Redis when a URL is set, SQLite otherwise."""
+    if settings.redis_url:
+        from service.jobs.redis_store import RedisJobStore
+
+        return RedisJobStore(settings.redis_url, max_attempts=settings.max_attempts)
+    from service.jobs.sqlite_store import SQLiteJobStore
+
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    return SQLiteJobStore(settings.data_dir / "jobs.db", max_attempts=settings.max_attempts)

@@ -1,0 +1,82 @@
+import json
+
+import pytest
+from pydantic import ValidationError
+
+from quicknav_core.config import EnvConfig, apply_overrides, format_validation_error
+
+
+def _error_text(**kwargs) -> str:
+    with pytest.raises(ValidationError) as exc:
+        EnvConfig(**kwargs)
+    return format_validation_error(exc.value)
+
+
+def test_config__defaults_match_the_paper():
+    c = EnvConfig()
+    assert (c.room_size, c.grid_size, c.carve_fraction, c.return_prob) == (8.0, 16, 0.8, 0.05)
+    assert (c.robot_radius, c.max_wheel_speed, c.lidar_beams, c.lidar_fov_deg) == (
+        0.15,
+        1.0,
+        16,
+        360.0,
+    )
+    assert (c.lidar_max_range, c.goal_candidates, c.max_steps) == (10.0, 5, 300)
+    r = c.reward
+    assert (r.cycle_penalty, r.progress_reward, r.step_penalty, r.collision_penalty, r.goal_reward) == (
+        0.0, 1.0, 0.1, 10.0, 50.0,
+    )  # fmt: skip
+    assert c.cell_size == 0.5
+
+
+def test_config__json_round_trip():
+    c = EnvConfig(grid_size=8, lidar_beams=4, reward={"goal_reward": 20.0, "progress": "linear"})
+    again = EnvConfig.model_validate_json(c.model_dump_json())
+    assert again == c
+    assert json.loads(c.model_dump_json())["reward"]["progress"] == "linear"
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "field", "allowed"),
+    [
+        ({"grid_size": 3}, "grid_size", "greater than or equal to 4"),
+        ({"lidar_beams": 0}, "lidar_beams", "greater than or equal to 1"),
+        ({"lidar_fov_deg": 400}, "lidar_fov_deg", "less than or equal to 360"),
+        ({"return_prob": 1.0}, "return_prob", "less than 1"),
+        ({"carve_fraction": 0.0}, "carve_fraction", "greater than 0"),
+        ({"robot_radius": 0.3}, "robot_radius", "allowed range 0 < robot_radius < 0.25"),
+        (
+            {"max_wheel_speed": 10.0},
+            "max_wheel_speed*dt",
+            "max_wheel_speed*dt <= room_size/grid_size",
+        ),
+        ({"carve_max_steps": 10}, "carve_max_steps", "carve_max_steps >= 157"),
+        ({"reward": {"goal_reward": -1}}, "reward.goal_reward", "greater than or equal to 0"),
+    ],
+)
+def test_config__bad_values_name_field_and_range(kwargs, field, allowed):
+    text = _error_text(**kwargs)
+    assert field in text
+    assert allowed in text
+
+
+def test_config__unknown_field_rejected():
+    assert "lidar_beam" in _error_text(lidar_beam=8)
+
+
+def test_config__robot_wider_than_corridor_on_fine_grid():
+    # grid 64 in an 8 m room makes 0.125 m corridors: a 0.3 m robot cannot fit
+    text = _error_text(grid_size=64)
+    assert "robot_radius" in text and "narrower than a one-cell corridor" in text
+
+
+def test_overrides__nested_and_typed():
+    c = apply_overrides(EnvConfig(), ["grid_size=8", "reward.goal_reward=20", "observe_goal=false"])
+    assert c.grid_size == 8 and c.reward.goal_reward == 20.0 and c.observe_goal is False
+
+
+def test_overrides__unknown_key_is_named():
+    with pytest.raises(ValueError, match="unknown field 'gird_size'"):
+        apply_overrides(EnvConfig(), ["gird_size=8"])
+    with pytest.raises(ValidationError, match="grid_size"):
+        apply_overrides(EnvConfig(), ["grid_size=2"])

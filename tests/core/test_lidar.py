@@ -1,0 +1,127 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from quicknav_core.config import EnvConfig
+from quicknav_core.env.constants import HIT_GOAL, HIT_NONE, HIT_WALL
+from quicknav_core.env.lidar import beam_angles, cast_lidar
+from quicknav_core.env.numpy_env import beam_angles_np, cast_lidar_np
+from quicknav_core.env.rooms import make_room_bank
+from tests.core.reference import brute_force_lidar, disc_wall_clearance
+
+cast_batch = jax.jit(
+    jax.vmap(cast_lidar, in_axes=(0, 0, 0, 0, None, None, None, None, None)), static_argnums=(4, 5)
+)
+
+
+def _random_poses(rooms, cell, radius, rng, per_room):
+    """Random robot poses with clearance >= radius from walls, and goals at free cell centres."""
+    g = rooms.shape[1]
+    out = []
+    for walls in rooms:
+        free = np.argwhere(~walls)
+        for _ in range(per_room):
+            while True:
+                r, c = free[rng.integers(len(free))]
+                pos = (np.array([c, r]) + rng.uniform(0, 1, 2)) * cell
+                if disc_wall_clearance(pos, walls, cell) >= radius:
+                    break
+            gr, gc = free[rng.integers(len(free))]
+            goal = (np.array([gc, gr]) + 0.5) * cell
+            out.append((walls, pos, rng.uniform(-np.pi, np.pi), goal))
+    assert g == rooms.shape[2]
+    return out
+
+
+@pytest.mark.parametrize(
+    ("grid", "beams", "fov", "max_range"),
+    [
+        (16, 16, 360.0, 10.0),
+        (8, 7, 120.0, 3.0),
+        (32, 33, 270.0, 10.0),
+        (40, 12, 360.0, 2.0),
+    ],  # 40: carved with return_prob 0.02 below,
+)
+def test_lidar__matches_brute_force(grid, beams, fov, max_range):
+    cfg = EnvConfig(
+        grid_size=grid, lidar_beams=beams, lidar_fov_deg=fov, lidar_max_range=max_range,
+        robot_radius=min(0.15, 0.45 * 8.0 / grid), train_rooms=40,
+        return_prob=0.05 if grid < 40 else 0.02,
+    )  # fmt: skip
+    rooms = make_room_bank(cfg, "train")
+    rng = np.random.default_rng(grid)
+    poses = _random_poses(rooms, cfg.cell_size, cfg.robot_radius, rng, per_room=10)
+    walls = np.stack([p[0] for p in poses])
+    pos = np.stack([p[1] for p in poses]).astype(np.float32)
+    theta = np.array([p[2] for p in poses], np.float32)
+    goal = np.stack([p[3] for p in poses]).astype(np.float32)
+    angles = beam_angles(beams, fov)
+    ranges, hits = cast_batch(
+        pos, theta, goal, walls, beams, fov, cfg.cell_size, max_range, cfg.goal_radius
+    )
+    ranges, hits = np.asarray(ranges), np.asarray(hits)
+    worst = 0.0
+    for i in range(len(poses)):
+        ref_r, ref_h = brute_force_lidar(
+            pos[i], theta[i], goal[i], walls[i], np.asarray(angles), cfg.cell_size, max_range,
+            cfg.goal_radius,
+        )  # fmt: skip
+        worst = max(worst, np.abs(ranges[i] - ref_r).max())
+        assert (hits[i] == ref_h).all(), (i, hits[i], ref_h)
+        # the NumPy twin's caster is held to the same reference
+        np_r, np_h = cast_lidar_np(
+            pos[i], theta[i], goal[i], walls[i], beam_angles_np(beams, fov), cfg.cell_size,
+            max_range, cfg.goal_radius,
+        )  # fmt: skip
+        assert np.abs(np_r - ref_r).max() < 1e-4
+        assert (np_h == ref_h).all()
+    assert worst < 1e-4, worst
+    # the sample exercised every hit type
+    assert {HIT_WALL, HIT_GOAL} <= set(np.unique(hits)) or max_range > 5
+
+
+def test_lidar__short_range_reports_nothing_hit():
+    walls = np.ones((8, 8), bool)
+    walls[1:-1, 1:-1] = False
+    ranges, hits = cast_lidar(
+        jnp.array([4.0, 4.0]),
+        jnp.float32(0.0),
+        jnp.array([6.5, 6.5]),
+        walls,
+        4,
+        360.0,
+        1.0,
+        1.5,
+        0.3,
+    )
+    assert (np.asarray(hits) == HIT_NONE).all()
+    assert np.allclose(np.asarray(ranges), 1.5)
+
+
+def test_lidar__hand_built_distances_and_goal():
+    # 8x8 room of 1 m cells, free inside; robot at (2.5, 4.5) facing +x, goal at (5.5, 4.5)
+    walls = np.ones((8, 8), bool)
+    walls[1:-1, 1:-1] = False
+    # 4 beams at 0, 90, 180, 270 degrees
+    ranges, hits = cast_lidar(
+        jnp.array([2.5, 4.5]),
+        jnp.float32(0.0),
+        jnp.array([5.5, 4.5]),
+        walls,
+        4,
+        360.0,
+        1.0,
+        10.0,
+        0.5,
+    )
+    np.testing.assert_allclose(np.asarray(ranges), [2.5, 2.5, 1.5, 3.5], atol=1e-5)
+    assert list(np.asarray(hits)) == [HIT_GOAL, HIT_WALL, HIT_WALL, HIT_WALL]
+
+
+def test_beam_angles__fov_ends_included_and_full_circle_even():
+    a = np.rad2deg(np.asarray(beam_angles(5, 90.0)))
+    np.testing.assert_allclose(a, [-45, -22.5, 0, 22.5, 45], atol=1e-4)
+    b = np.rad2deg(np.asarray(beam_angles(4, 360.0)))
+    np.testing.assert_allclose(b, [0, 90, 180, 270], atol=1e-4)
+    assert np.asarray(beam_angles(1, 90.0)).tolist() == [0.0]

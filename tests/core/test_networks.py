@@ -1,0 +1,86 @@
+"""The recurrent interface: carries reset at episode starts; GTrXL never looks across one."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from quicknav_core.config import GTrXLNetwork, LSTMNetwork, MLPNetwork
+from quicknav_core.networks import make_network
+
+NETWORKS = {
+    "mlp": MLPNetwork(hidden_sizes=(16,)),
+    "mlp-memory": MLPNetwork(hidden_sizes=(16,), memory_size=8),
+    "lstm": LSTMNetwork(num_layers=2, hidden_size=6),
+    "gtrxl": GTrXLNetwork(embed_size=8, num_heads=2, head_size=4, num_layers=2, memory_length=5),
+}
+OBS = 7
+
+
+def _init(name, batch=3):
+    net = make_network(NETWORKS[name])
+    carry = net.initial_carry(batch)
+    obs = jnp.ones((batch, OBS))
+    params = net.init(jax.random.PRNGKey(0), carry, obs, jnp.ones((batch,), bool))
+    return net, params
+
+
+def _run(net, params, obs_seq, start_seq):
+    """Step through a (T, B, O) sequence, returning means (T, B, A) and values (T, B)."""
+
+    def step(carry, xs):
+        obs, start = xs
+        carry, out = net.apply(params, carry, obs, start)
+        return carry, (out.mean, out.value)
+
+    _, (mean, value) = jax.lax.scan(step, net.initial_carry(obs_seq.shape[1]), (obs_seq, start_seq))
+    return np.asarray(mean), np.asarray(value)
+
+
+@pytest.mark.parametrize("name", list(NETWORKS))
+def test_carry__resets_exactly_at_episode_start(name):
+    net, params = _init(name)
+    key = jax.random.PRNGKey(1)
+    obs = jax.random.normal(key, (3, OBS))
+    fresh_carry = net.initial_carry(3)
+    # a carry full of history
+    busy = jax.tree.map(lambda x: jax.random.normal(key, x.shape).astype(x.dtype) if x.dtype != bool
+                        else jnp.ones_like(x), fresh_carry)  # fmt: skip
+    start = jnp.array([True, False, True])
+    _, out_busy = net.apply(params, busy, obs, start)
+    _, out_fresh = net.apply(params, fresh_carry, obs, jnp.ones(3, bool))
+    np.testing.assert_allclose(
+        np.asarray(out_busy.mean)[start], np.asarray(out_fresh.mean)[start], atol=1e-6
+    )
+    if name != "mlp":  # memoryless: history never matters
+        assert not np.allclose(np.asarray(out_busy.mean)[1], np.asarray(out_fresh.mean)[1])
+
+
+@pytest.mark.parametrize("name", ["mlp-memory", "lstm", "gtrxl"])
+def test_memory__earlier_episode_cannot_influence_current_output(name):
+    net, params = _init(name, batch=2)
+    t_len, boundary = 12, 6
+    obs = jax.random.normal(jax.random.PRNGKey(2), (t_len, 2, OBS))
+    start = jnp.zeros((t_len, 2), bool).at[0].set(True).at[boundary].set(True)
+    mean_a, value_a = _run(net, params, obs, start)
+    # change every observation of the previous episode
+    obs_b = obs.at[:boundary].add(3.0)
+    mean_b, value_b = _run(net, params, obs_b, start)
+    np.testing.assert_allclose(mean_a[boundary:], mean_b[boundary:], atol=1e-6)
+    np.testing.assert_allclose(value_a[boundary:], value_b[boundary:], atol=1e-6)
+    # while inside an episode, the past does matter (the memory is real)
+    assert not np.allclose(mean_a[1:boundary], mean_b[1:boundary])
+
+
+def test_gtrxl__memory_window_is_memory_length():
+    net, params = _init("gtrxl", batch=1)
+    m = NETWORKS["gtrxl"].memory_length
+    t_len = m + 8
+    obs = jax.random.normal(jax.random.PRNGKey(3), (t_len, 1, OBS))
+    start = jnp.zeros((t_len, 1), bool).at[0].set(True)
+    mean_a, _ = _run(net, params, obs, start)
+    obs_b = obs.at[0].add(5.0)  # the very first step falls out of layer 0's memory after m steps
+    mean_b, _ = _run(net, params, obs_b, start)
+    assert not np.allclose(mean_a[1], mean_b[1])
+    # layer 1 remembers layer-0 outputs for another m steps; after 2m steps nothing is left
+    np.testing.assert_allclose(mean_a[2 * m + 1 :], mean_b[2 * m + 1 :], atol=1e-6)

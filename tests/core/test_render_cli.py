@@ -1,0 +1,69 @@
+import json
+
+import numpy as np
+from PIL import Image
+from typer.testing import CliRunner
+
+from quicknav_core.cli import app
+from quicknav_core.config import EnvConfig
+from quicknav_core.env.numpy_env import QuickNavNumpyEnv
+from quicknav_core.env.render import episode_frames, render_frame, save_gif
+
+runner = CliRunner()
+
+
+def test_render_frame__draws_rays_by_hit_type():
+    cfg = EnvConfig(grid_size=8, train_rooms=4)
+    env = QuickNavNumpyEnv(cfg)
+    env.reset(seed=0)
+    snap = env.snapshot()
+    rgb = render_frame(snap, cfg)
+    assert rgb.dtype == np.uint8 and rgb.shape[2] == 3
+    red = (rgb[..., 0] > 180) & (rgb[..., 1] < 80) & (rgb[..., 2] < 80)
+    assert red.sum() > 20, "wall-hitting rays are drawn red"
+    # a snapshot with every beam on the goal draws green rays and no red
+    snap["lidar_hits"] = np.full_like(snap["lidar_hits"], 2)
+    rgb2 = render_frame(snap, cfg)
+    red2 = (rgb2[..., 0] > 180) & (rgb2[..., 1] < 80) & (rgb2[..., 2] < 80)
+    assert red2.sum() < red.sum() / 4
+
+
+def test_gif__has_one_frame_per_snapshot(tmp_path):
+    cfg = EnvConfig(grid_size=8, train_rooms=4)
+    env = QuickNavNumpyEnv(cfg)
+    env.reset(seed=1)
+    snaps = [env.snapshot()]
+    for _ in range(4):
+        env.step([1.0, 0.5])
+        snaps.append(env.snapshot())
+    path = save_gif(episode_frames(snaps, cfg, size_px=160), tmp_path / "ep.gif")
+    with Image.open(path) as im:
+        assert im.n_frames == 5
+
+
+def test_cli_env_demo__writes_png_and_gif(tmp_path):
+    result = runner.invoke(app, ["env", "demo", "--out", str(tmp_path), "--set", "grid_size=8"])
+    assert result.exit_code == 0, result.output
+    assert "reached the goal" in result.output
+    assert Image.open(tmp_path / "demo.png").size[0] >= 300
+    with Image.open(tmp_path / "demo.gif") as im:
+        assert im.n_frames > 3
+
+
+def test_cli_env_rooms__writes_figure(tmp_path):
+    out = tmp_path / "rooms.png"
+    result = runner.invoke(app, ["env", "rooms", "--out", str(out), "--per-row", "2"])
+    assert result.exit_code == 0, result.output
+    assert Image.open(out).size[0] > 300
+
+
+def test_cli__bad_config_is_reported_with_field_and_range(tmp_path):
+    result = runner.invoke(app, ["env", "demo", "--out", str(tmp_path), "--set", "lidar_beams=0"])
+    assert result.exit_code == 2
+    assert "lidar_beams" in result.output and "greater than or equal to 1" in result.output
+    bad = tmp_path / "cfg.json"
+    bad.write_text(json.dumps({"grid_size": 8, "robot_radius": 0.6}))
+    result = runner.invoke(app, ["env", "demo", "--config", str(bad)])
+    assert result.exit_code == 2 and "robot_radius" in result.output
+    result = runner.invoke(app, ["env", "demo", "--policy", "smart"])
+    assert result.exit_code == 2 and "allowed values" in result.output

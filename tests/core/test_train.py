@@ -1,0 +1,169 @@
+"""Trainers: the recurrent-PPO invariant, every algorithm x network trains, learning, checkpoints."""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from quicknav_core.cli import app
+from quicknav_core.config import TrainConfig
+from quicknav_core.networks import gaussian_log_prob
+from quicknav_core.train import make_trainer, read_metrics, train_run
+from quicknav_core.train.recurrent_ppo import RecurrentPPO
+
+TINY_ENV = {"grid_size": 8, "lidar_beams": 8, "train_rooms": 32, "test_rooms": 16, "max_steps": 40}
+
+
+def tiny(network, algorithm=None, **kw):
+    data = {
+        "env": TINY_ENV, "network": network,
+        "algorithm": algorithm or {"name": "ppo", "num_steps": 16, "num_minibatches": 2, "num_epochs": 2},
+        "num_envs": 8, "total_steps": 8 * 16 * 4, "chunk_steps": 8 * 16 * 2, "seed": 3,
+    }  # fmt: skip
+    data.update(kw)
+    return TrainConfig.model_validate(data)
+
+
+RECURRENT = {
+    "mlp-memory": {"kind": "mlp", "hidden_sizes": [16], "memory_size": 8},
+    "lstm": {"kind": "lstm", "num_layers": 2, "hidden_size": 8},
+    "gtrxl": {
+        "kind": "gtrxl",
+        "embed_size": 8,
+        "head_size": 4,
+        "num_layers": 1,
+        "memory_length": 6,
+    },
+}
+
+
+@pytest.mark.parametrize("name", list(RECURRENT))
+def test_recurrent_ppo__replay_reproduces_acting_log_probs(name):
+    trainer = make_trainer(tiny(RECURRENT[name], env={**TINY_ENV, "max_steps": 7}))
+    algo: RecurrentPPO = trainer.algo
+    state = trainer.init_state()
+    state, traj, carry0 = jax.jit(algo.collect)(state)
+    starts = np.asarray(traj.start)
+    assert starts[0].all() and starts[1:].any(), "the rollout should cross episode boundaries"
+    out = jax.jit(algo.replay)(state.params, carry0, traj)
+    replayed = gaussian_log_prob(out.mean, out.log_std, traj.action)
+    np.testing.assert_allclose(np.asarray(replayed), np.asarray(traj.log_prob), atol=2e-5)
+    np.testing.assert_allclose(np.asarray(out.value), np.asarray(traj.value), atol=2e-5)
+
+
+COMBOS = {
+    "ppo-mlp (rejax)": ({"kind": "mlp", "hidden_sizes": [16]}, None),
+    "ppo-mlp (quicknav)": ({"kind": "mlp", "hidden_sizes": [16]},
+                           {"name": "ppo", "num_steps": 16, "num_minibatches": 2, "num_epochs": 2,
+                            "implementation": "quicknav"}),
+    **{f"ppo-{k}": (v, None) for k, v in RECURRENT.items()},
+    "sac-mlp": ({"kind": "mlp", "hidden_sizes": [16]},
+                {"name": "sac", "batch_size": 32, "buffer_size": 512, "fill_buffer": 64}),
+    "td3-mlp": ({"kind": "mlp", "hidden_sizes": [16]},
+                {"name": "td3", "batch_size": 32, "buffer_size": 512, "fill_buffer": 64}),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("combo", list(COMBOS))
+def test_every_algorithm_network_combination_trains_without_nans(combo, tmp_path):
+    network, algorithm = COMBOS[combo]
+    cfg = tiny(network, algorithm)
+    if algorithm and algorithm["name"] in ("sac", "td3"):
+        cfg = cfg.model_copy(update={"total_steps": 256, "chunk_steps": 128})
+    trainer = make_trainer(cfg)
+    summary = train_run(cfg, tmp_path, trainer=trainer)
+    assert summary["chunks_done"] == 2
+    state = trainer.from_bytes((tmp_path / "checkpoint" / "state.msgpack").read_bytes())
+    params = trainer.policy(state).params
+    assert all(bool(jnp.isfinite(x).all()) for x in jax.tree.leaves(params))
+    for row in read_metrics(tmp_path):
+        for key, value in row.items():
+            if key not in ("mean_return", "success_rate", "mean_length", "collisions_per_episode"):
+                assert np.isfinite(value), (key, value)
+    # the policy acts through the shared interface
+    policy = trainer.policy(state)
+    carry = policy.initial_carry(4)
+    _, action = policy.act(
+        carry, jnp.zeros((4, trainer.env.obs_dim)), jnp.ones(4, bool), jax.random.PRNGKey(0)
+    )
+    assert action.shape == (4, 2) and bool((jnp.abs(action) <= 1).all())
+
+
+def test_ppo__improves_success_on_an_easy_room(tmp_path):
+    cfg = TrainConfig.model_validate({
+        "env": {"grid_size": 8, "train_rooms": 64, "test_rooms": 16, "max_steps": 100},
+        "algorithm": {"name": "ppo", "learning_rate": 1e-3, "num_steps": 32, "num_minibatches": 4,
+                      "num_epochs": 4, "gamma": 0.97, "ent_coef": 0.005},
+        "network": {"kind": "mlp", "hidden_sizes": [64, 64]},
+        "num_envs": 32, "total_steps": 400_000, "chunk_steps": 32 * 32 * 8, "seed": 0,
+    })  # fmt: skip
+    train_run(cfg, tmp_path)
+    rows = read_metrics(tmp_path)
+    first, last = rows[0]["success_rate"], np.mean([r["success_rate"] for r in rows[-3:]])
+    assert last > first + 0.2 and last > 0.7, (first, last)
+
+
+@pytest.mark.parametrize("network", ["mlp", "lstm"])
+def test_resume__equals_an_uninterrupted_run(network, tmp_path):
+    net = {"kind": "mlp", "hidden_sizes": [16]} if network == "mlp" else RECURRENT["lstm"]
+    cfg = tiny(net, total_steps=8 * 16 * 6)
+    straight = train_run(cfg, tmp_path / "a")
+    stopped = train_run(cfg, tmp_path / "b", callback=lambda r: r.chunk == 1)
+    assert stopped["stopped"] and stopped["chunks_done"] == 1
+    resumed = train_run(cfg, tmp_path / "b", resume=True)
+    assert resumed["chunks_done"] == straight["chunks_done"] == 3
+    ma, mb = read_metrics(tmp_path / "a"), read_metrics(tmp_path / "b")
+    drop = ("wall_s", "steps_per_s")
+    assert [{k: v for k, v in r.items() if k not in drop} for r in ma] == [
+        {k: v for k, v in r.items() if k not in drop} for r in mb
+    ]
+    a = (tmp_path / "a" / "checkpoint" / "state.msgpack").read_bytes()
+    b = (tmp_path / "b" / "checkpoint" / "state.msgpack").read_bytes()
+    assert a == b
+
+
+def test_same_seed_same_metrics(tmp_path):
+    cfg = tiny(RECURRENT["mlp-memory"])
+    train_run(cfg, tmp_path / "a")
+    train_run(cfg, tmp_path / "b")
+    drop = ("wall_s", "steps_per_s")
+    clean = lambda rows: [{k: v for k, v in r.items() if k not in drop} for r in rows]  # noqa: E731
+    assert clean(read_metrics(tmp_path / "a")) == clean(read_metrics(tmp_path / "b"))
+    other = cfg.model_copy(update={"seed": 4})
+    train_run(other, tmp_path / "c")
+    assert clean(read_metrics(tmp_path / "a")) != clean(read_metrics(tmp_path / "c"))
+
+
+@pytest.mark.parametrize(
+    ("args", "expected"),
+    [
+        (["--set", "algorithm.num_minibatches=7"], "algorithm.num_minibatches=7 must divide"),
+        (["--set", "algorithm.learning_rate=-1"], "algorithm.ppo.learning_rate"),
+        (["--preset", "nope"], "unknown preset 'nope'"),
+        (["--network", "cnn"], "--network 'cnn'"),
+        (["--algo", "sac", "--network", "lstm"], "trains memoryless MLPs only"),
+        (["--set", "num_envs=0"], "num_envs"),
+    ],
+)
+def test_cli_train__bad_input_fails_before_compiling(args, expected, tmp_path):
+    result = CliRunner().invoke(app, ["train", "--out", str(tmp_path / "run"), *args])
+    assert result.exit_code == 2, result.output
+    assert expected in result.output, result.output
+    assert not (tmp_path / "run").exists()
+
+
+def test_cli_train__writes_run_folder_and_resumes(tmp_path):
+    run = tmp_path / "run"
+    args = ["train", "--preset", "demo", "--out", str(run), "--total-steps", "8192",
+            "--set", "chunk_steps=4096", "--set", "env.grid_size=8"]  # fmt: skip
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    for name in ("config.json", "metrics.jsonl", "learning_curve.png", "checkpoint/state.msgpack"):
+        assert (run / name).exists(), name
+    assert json.loads((run / "config.json").read_text())["env"]["grid_size"] == 8
+    assert len(read_metrics(run)) == 2
+    result = CliRunner().invoke(app, ["train", "--resume", str(run)])
+    assert result.exit_code == 0, result.output

@@ -1,0 +1,216 @@
+"""End to end over HTTP against a live server: jobs, SSE, artifacts, eval, cancel, idempotency, auth."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import httpx
+import pytest
+
+from tests.service.conftest import LiveServer
+
+TINY = {"env.grid_size": 8, "env.train_rooms": 32, "env.test_rooms": 16, "env.max_steps": 60,
+        "num_envs": 16, "algorithm.num_steps": 32, "algorithm.num_minibatches": 4,
+        "total_steps": 1536, "chunk_steps": 512}  # fmt: skip
+
+
+def submit_tiny(url, **extra) -> dict:
+    r = httpx.post(f"{url}/jobs/train", json={"preset": "demo", "overrides": {**TINY, **extra}})
+    assert r.status_code == 202, r.text
+    assert r.headers["location"] == f"/jobs/{r.json()['id']}"
+    return r.json()
+
+
+def sse_events(url, job_id, last_event_id=None, timeout=300) -> list[tuple[int, str, dict]]:
+    headers = {"Last-Event-ID": str(last_event_id)} if last_event_id else {}
+    out, cur = [], {}
+    with httpx.stream("GET", f"{url}/jobs/{job_id}/events", headers=headers, timeout=timeout) as r:
+        assert r.status_code == 200 and r.headers["content-type"].startswith("text/event-stream")
+        for line in r.iter_lines():
+            if line.startswith("id: "):
+                cur["id"] = int(line[4:])
+            elif line.startswith("event: "):
+                cur["event"] = line[7:]
+            elif line.startswith("data: "):
+                cur["data"] = json.loads(line[6:])
+            elif line == "" and cur:
+                out.append((cur["id"], cur["event"], cur["data"]))
+                cur = {}
+    return out
+
+
+def wait_status(url, job_id, statuses, timeout=300) -> dict:
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        job = httpx.get(f"{url}/jobs/{job_id}").json()
+        if job["status"] in statuses:
+            return job
+        time.sleep(0.1)
+    raise AssertionError(f"job {job_id} never reached {statuses}: {job}")
+
+
+def test_train_job__sse_artifacts_metrics_then_eval_job(live):
+    job = submit_tiny(live.url)
+    assert job["status"] == "queued" and job["kind"] == "train"
+    worker, thread = live.run_worker_in_background()
+    try:
+        events = sse_events(live.url, job["id"])
+        kinds = [e[1] for e in events]
+        assert kinds[0] == "started" and kinds[-1] == "succeeded"
+        assert kinds.count("progress") == 3
+        ids = [e[0] for e in events]
+        assert ids == sorted(ids) and len(set(ids)) == len(ids)
+        progress = [e[2]["progress"] for e in events if e[1] == "progress"]
+        assert progress == sorted(progress) and progress[-1] == pytest.approx(1.0)
+        # resumable: everything after the second event
+        tail = sse_events(live.url, job["id"], last_event_id=ids[1])
+        assert [e[0] for e in tail] == ids[2:]
+
+        done = httpx.get(f"{live.url}/jobs/{job['id']}").json()
+        assert (
+            done["status"] == "succeeded"
+            and done["result"]["env_steps"] >= 1536
+            and done["attempts"] == 1
+        )
+        rows = httpx.get(f"{live.url}/jobs/{job['id']}/metrics").json()["metrics"]
+        assert len(rows) == 3 and rows[-1]["env_steps"] == done["result"]["env_steps"]
+        names = {
+            a["name"]
+            for a in httpx.get(f"{live.url}/jobs/{job['id']}/artifacts").json()["artifacts"]
+        }
+        assert {
+            "config.json",
+            "metrics.jsonl",
+            "learning_curve.png",
+            "checkpoint/state.msgpack",
+        } <= names
+        ckpt = httpx.get(f"{live.url}/jobs/{job['id']}/artifacts/checkpoint/state.msgpack")
+        assert ckpt.status_code == 200
+        assert (
+            ckpt.content
+            == (
+                live.settings.artifacts_dir / job["id"] / "checkpoint" / "state.msgpack"
+            ).read_bytes()
+        )
+        png = httpx.get(f"{live.url}/jobs/{job['id']}/artifacts/learning_curve.png")
+        assert png.content[:8] == b"\x89PNG\r\n\x1a\n"
+
+        ev = httpx.post(f"{live.url}/jobs/eval", json={"job_id": job["id"], "episodes": 8})
+        assert ev.status_code == 202, ev.text
+        ev_done = wait_status(live.url, ev.json()["id"], {"succeeded", "failed"})
+        assert ev_done["status"] == "succeeded", ev_done["error"]
+        assert ev_done["result"]["metrics"]["episodes"] == 8
+        names = {
+            a["name"]
+            for a in httpx.get(f"{live.url}/jobs/{ev.json()['id']}/artifacts").json()["artifacts"]
+        }
+        assert {"eval.json", "trajectories.png", "episodes.gif"} <= names
+
+        listed = httpx.get(f"{live.url}/jobs", params={"kind": "eval"}).json()
+        assert listed["count"] == 1 and listed["data"][0]["id"] == ev.json()["id"]
+        listed = httpx.get(f"{live.url}/jobs", params={"status": "succeeded", "limit": 1}).json()
+        assert listed["count"] == 2 and len(listed["data"]) == 1
+        # finished jobs can be deleted, with their artifacts
+        assert httpx.delete(f"{live.url}/jobs/{ev.json()['id']}").status_code == 204
+        assert httpx.get(f"{live.url}/jobs/{ev.json()['id']}").status_code == 404
+    finally:
+        worker.shutdown.set()
+        thread.join(30)
+
+
+def test_cancel_queued_and_running_jobs(live):
+    queued = submit_tiny(live.url)
+    r = httpx.post(f"{live.url}/jobs/{queued['id']}/cancel")
+    assert r.status_code == 200 and r.json()["status"] == "cancelled"
+    assert httpx.post(f"{live.url}/jobs/{queued['id']}/cancel").json()["status"] == "cancelled"
+    running = submit_tiny(live.url, total_steps=512 * 40)
+    worker, thread = live.run_worker_in_background()
+    try:
+        with httpx.stream("GET", f"{live.url}/jobs/{running['id']}/events", timeout=300) as stream:
+            for line in stream.iter_lines():
+                if line.startswith("event: progress"):
+                    break
+        r = httpx.post(f"{live.url}/jobs/{running['id']}/cancel")
+        assert r.json()["cancel_requested"]
+        done = wait_status(live.url, running["id"], {"cancelled", "succeeded", "failed"})
+        assert done["status"] == "cancelled"
+        assert done["result"]["chunks_done"] < 40, "stopped at a chunk boundary, not at the end"
+        assert (
+            live.settings.artifacts_dir / running["id"] / "checkpoint" / "state.msgpack"
+        ).exists()
+    finally:
+        worker.shutdown.set()
+        thread.join(30)
+
+
+def test_idempotency_key(live):
+    body = {"preset": "demo", "overrides": TINY}
+    a = httpx.post(f"{live.url}/jobs/train", json=body, headers={"Idempotency-Key": "abc"})
+    b = httpx.post(f"{live.url}/jobs/train", json=body, headers={"Idempotency-Key": "abc"})
+    assert a.status_code == b.status_code == 202 and a.json()["id"] == b.json()["id"]
+    c = httpx.post(
+        f"{live.url}/jobs/train", json={"preset": "paper-ppo"}, headers={"Idempotency-Key": "abc"}
+    )
+    assert c.status_code == 409 and "abc" in c.json()["detail"]
+    assert httpx.get(f"{live.url}/jobs").json()["count"] == 1
+
+
+def test_bad_input_is_refused_with_named_fields(live):
+    r = httpx.post(f"{live.url}/jobs/train", json={"preset": "demo", "overrides": {"num_envs": 0}})
+    assert r.status_code == 422 and "num_envs" in r.text
+    r = httpx.post(
+        f"{live.url}/jobs/train",
+        json={"preset": "demo", "overrides": {"num_envs": 8192, "total_steps": 10**8}},
+    )
+    assert (
+        r.status_code == 422
+        and "max_envs=4096" in r.text
+        and r.json()["detail"][0]["loc"][-1] == "num_envs"
+    )
+    r = httpx.post(f"{live.url}/jobs/train", json={"preset": "nope"})
+    assert r.status_code == 422 and "unknown preset 'nope'" in r.text
+    r = httpx.post(f"{live.url}/jobs/train", json={"preset": "demo", "colour": "red"})
+    assert r.status_code == 422 and "colour" in r.text
+    r = httpx.post(f"{live.url}/jobs/train", json={"config": {"env": {"grid_size": 2}}})
+    assert r.status_code == 422 and "grid_size" in r.text
+    r = httpx.post(f"{live.url}/jobs/eval", json={"policy": "random", "episodes": 0})
+    assert r.status_code == 422 and "episodes" in r.text
+    r = httpx.post(f"{live.url}/jobs/eval", json={"job_id": "nope"})
+    assert r.status_code == 404
+    big = {"preset": "demo", "overrides": {"note": "x" * 2_000_000}}
+    r = httpx.post(f"{live.url}/jobs/train", json=big)
+    assert r.status_code == 413 and "exceeds the limit" in r.text
+
+
+def test_artifact_names_cannot_escape_the_job_folder(live):
+    job = submit_tiny(live.url)
+    (live.settings.artifacts_dir / job["id"]).mkdir(parents=True, exist_ok=True)
+    for name in ("%2e%2e/jobs.db", "..%2f..%2fjobs.db", "%2e%2e%2f%2e%2e%2fjobs.db"):
+        r = httpx.get(f"{live.url}/jobs/{job['id']}/artifacts/{name}")
+        assert r.status_code in (400, 404), (name, r.status_code)
+        assert b"SQLite" not in r.content
+
+
+def test_auth_token_required_on_job_endpoints(tmp_path):
+    with LiveServer(tmp_path, api_token="s3cret-token") as live:
+        assert httpx.get(f"{live.url}/jobs").status_code == 401
+        assert (
+            httpx.get(
+                f"{live.url}/jobs", headers={"Authorization": "Bearer wrong-token"}
+            ).status_code
+            == 401
+        )
+        ok = httpx.get(f"{live.url}/jobs", headers={"Authorization": "Bearer s3cret-token"})
+        assert ok.status_code == 200
+        assert httpx.get(f"{live.url}/healthz").status_code == 200
+        assert httpx.get(f"{live.url}/readyz").status_code == 200
+        assert httpx.post(f"{live.url}/jobs/train", json={"preset": "demo"}).status_code == 401
+
+
+def test_prometheus_metrics_and_presets(live):
+    submit_tiny(live.url)
+    text = httpx.get(f"{live.url}/metrics").text
+    assert 'quicknav_jobs{status="queued"} 1' in text and "quicknav_queue_depth 1" in text
+    presets = httpx.get(f"{live.url}/presets").json()
+    assert "demo" in presets and "paper-lstm" in presets

@@ -1,0 +1,137 @@
+"""One contract, two job stores: the embedded SQLite store and the Redis store (a real server)."""
+
+import time
+import uuid
+
+import pytest
+import redis
+
+from service.jobs.models import IdempotencyConflict, JobNotFound, JobStateError, JobStatus
+from service.jobs.redis_store import RedisJobStore
+from service.jobs.sqlite_store import SQLiteJobStore
+
+REDIS_URL = "redis://127.0.0.1:6379/14"  # this suite's own DB index
+
+
+@pytest.fixture(params=["sqlite", "redis"])
+def store(request, tmp_path):
+    if request.param == "sqlite":
+        s = SQLiteJobStore(tmp_path / "jobs.db", max_attempts=2)
+        yield s
+        s.close()
+    else:
+        client = redis.Redis.from_url(REDIS_URL)
+        client.ping()  # no Redis reachable is a failure here, not a skip
+        client.flushdb()
+        s = RedisJobStore(REDIS_URL, prefix=f"t{uuid.uuid4().hex[:8]}", max_attempts=2)
+        yield s
+        s.close()
+        client.flushdb()
+
+
+def test_submit_get_list_and_filters(store):
+    a, created = store.submit("train", {"preset": "demo"})
+    assert created and a.status == JobStatus.queued
+    b, _ = store.submit("eval", {"policy": "random"})
+    c, _ = store.submit("train", {"preset": "paper-ppo"})
+    assert store.get(a.id).request == {"preset": "demo"}
+    jobs, total = store.list()
+    assert total == 3 and [j.id for j in jobs] == [c.id, b.id, a.id]  # newest first
+    jobs, total = store.list(kind="train")
+    assert total == 2 and {j.id for j in jobs} == {a.id, c.id}
+    jobs, total = store.list(limit=1, offset=1)
+    assert total == 3 and [j.id for j in jobs] == [b.id]
+    with pytest.raises(JobNotFound):
+        store.get("nope")
+
+
+def test_idempotency_key(store):
+    a, created = store.submit("train", {"preset": "demo"}, idempotency_key="k1")
+    again, created2 = store.submit("train", {"preset": "demo"}, idempotency_key="k1")
+    assert created and not created2 and again.id == a.id
+    with pytest.raises(IdempotencyConflict):
+        store.submit("train", {"preset": "other"}, idempotency_key="k1")
+    assert store.list()[1] == 1
+
+
+def test_claim_is_fifo_and_exclusive(store):
+    a, _ = store.submit("train", {"n": 1})
+    b, _ = store.submit("train", {"n": 2})
+    first = store.claim("w1", lease_s=30)
+    second = store.claim("w2", lease_s=30)
+    assert (first.id, second.id) == (a.id, b.id)
+    assert first.status == JobStatus.running and first.worker == "w1" and first.attempts == 1
+    assert store.claim("w3", lease_s=30) is None
+    assert store.counts()["running"] == 2
+
+
+def test_heartbeat_progress_events_and_finish(store):
+    a, _ = store.submit("train", {})
+    job = store.claim("w1", 30)
+    assert store.heartbeat(job.id, "w1", 30)
+    assert not store.heartbeat(job.id, "w2", 30)
+    ids = [store.publish(job.id, {"type": "progress", "chunk": i}) for i in range(3)]
+    assert ids == sorted(ids) and len(set(ids)) == 3
+    store.progress(job.id, "w1", 0.5, {"mean_return": 1.5})
+    assert store.get(job.id).progress == 0.5 and store.get(job.id).metrics == {"mean_return": 1.5}
+    # resumable: events after a given id
+    tail = store.events(job.id, after=ids[0])
+    assert [e[1]["chunk"] for e in tail] == [1, 2]
+    with pytest.raises(JobStateError):
+        store.finish(job.id, "w2", JobStatus.succeeded)
+    done = store.finish(job.id, "w1", JobStatus.succeeded, result={"ok": True})
+    assert (
+        done.status == JobStatus.succeeded and done.result == {"ok": True} and done.progress == 1.0
+    )
+    last = store.events(job.id, after=ids[-1])
+    assert last[-1][1]["type"] == "succeeded"
+    assert not store.heartbeat(job.id, "w1", 30)
+    assert store.claim("w1", 30) is None
+
+
+def test_cancel_queued_and_running(store):
+    q, _ = store.submit("train", {"n": 1})
+    assert store.cancel(q.id).status == JobStatus.cancelled
+    assert store.cancel(q.id).status == JobStatus.cancelled  # idempotent
+    r, _ = store.submit("train", {"n": 2})
+    job = store.claim("w1", 30)
+    assert job.id == r.id, "a cancelled queued job is never handed out"
+    flagged = store.cancel(r.id)
+    assert flagged.status == JobStatus.running and flagged.cancel_requested
+    done = store.finish(r.id, "w1", JobStatus.cancelled)
+    assert done.status == JobStatus.cancelled
+
+
+def test_release_requeues_without_spending_an_attempt(store):
+    a, _ = store.submit("train", {})
+    job = store.claim("w1", 30)
+    store.release(job.id, "w1")
+    assert store.get(a.id).status == JobStatus.queued
+    again = store.claim("w2", 30)
+    assert again.id == a.id and again.attempts == 1
+
+
+def test_expired_lease_is_reclaimed_then_given_up(store):
+    a, _ = store.submit("train", {})
+    store.claim("dead-1", lease_s=0.2)
+    time.sleep(0.35)
+    second = store.claim("w2", lease_s=0.2)
+    assert (
+        second is not None and second.id == a.id and second.attempts == 2 and second.worker == "w2"
+    )
+    time.sleep(0.35)  # the second worker dies too: max_attempts=2 reached
+    assert store.claim("w3", lease_s=0.2) is None
+    failed = store.get(a.id)
+    assert failed.status == JobStatus.failed and "gave up after 2 attempts" in failed.error
+    assert store.events(a.id)[-1][1]["type"] == "failed"
+
+
+def test_delete_only_finished(store):
+    a, _ = store.submit("train", {})
+    with pytest.raises(JobStateError):
+        store.delete(a.id)
+    store.cancel(a.id)
+    store.delete(a.id)
+    with pytest.raises(JobNotFound):
+        store.get(a.id)
+    assert store.list()[1] == 0
