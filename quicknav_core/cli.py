@@ -667,7 +667,12 @@ def serve(
 
 @app.command("worker")
 def worker(
-    burst: Annotated[bool, typer.Option(help="Run queued jobs, then exit.")] = False,
+    burst: Annotated[
+        bool,
+        typer.Option(
+            help="Run queued jobs (and jobs orphaned by a dead worker), exit when none is queued or running."
+        ),
+    ] = False,
 ) -> None:
     """A worker process: claims jobs from the store (Redis for several machines), runs them."""
     import signal
@@ -687,11 +692,8 @@ def worker(
     console.print(f"worker {w.id} on {'redis' if settings.redis_url else settings.data_dir / 'jobs.db'}",
                   soft_wrap=True)  # fmt: skip
     if burst:
-        from service.worker import _enable_jax_cache
-
-        _enable_jax_cache(settings)
-        while w.run_once():
-            pass
+        ran = w.run_burst()
+        console.print(f"burst done: {ran} job(s) run, none queued or running")
     else:
         w.run_forever()
 

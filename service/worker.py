@@ -49,6 +49,25 @@ class Worker:
             if not self.run_once():
                 self.shutdown.wait(poll_s)
 
+    def run_burst(self, poll_s: float = 0.25) -> int:
+        """Drain the store, then return the number of jobs run.
+
+        Runs queued jobs and jobs orphaned by a dead worker (reclaimed once their lease lapses), and
+        returns only when no job is queued or running: a running job whose worker died may come
+        back to the queue, so it is waited for rather than forgotten.
+        """
+        _enable_jax_cache(self.settings)
+        ran = 0
+        while not self.shutdown.is_set():
+            if self.run_once():
+                ran += 1
+                continue
+            counts = self.store.counts()
+            if counts.get("queued", 0) == 0 and counts.get("running", 0) == 0:
+                break
+            self.shutdown.wait(poll_s)
+        return ran
+
     def run_once(self) -> bool:
         """Claim and run one job; False if the queue was empty (burst mode for tests)."""
         if self.shutdown.is_set():
