@@ -23,7 +23,12 @@ class Settings(BaseSettings):
     )
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=1, le=65535)
-    grpc_port: int = Field(50051, ge=1, le=65535)
+    grpc_port: int = Field(50051, ge=1, le=65535, description="gRPC Rollout port")
+    grpc_enabled: bool = Field(True, description="start the gRPC Rollout server in `quicknav serve`")
+    rollout_max_sessions: int = Field(16, ge=1, le=10_000, description="concurrent rollout streams")
+    rollout_idle_s: float = Field(
+        300.0, gt=0.0, le=86_400, description="a rollout stream with no message for this long is closed"
+    )
     max_envs: int = Field(4096, ge=1, le=1_048_576)
     max_total_steps: int = Field(200_000_000, ge=1)
     max_grid_size: int = Field(64, ge=4, le=128)
