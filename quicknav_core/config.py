@@ -219,11 +219,12 @@ def apply_overrides(model: BaseModel, overrides: list[str]) -> BaseModel:
     return type(model).model_validate(data)
 
 
-def format_validation_error(error: ValidationError) -> str:
-    """One line per bad field: ``field.path: message (got value)``."""
+def format_validation_error(error: ValidationError, prefix: str = "") -> str:
+    """One line per bad field: ``field.path: message (got value)``; ``prefix`` goes before paths."""
     lines = []
     for e in error.errors():
         loc = ".".join(str(p) for p in e["loc"]) or error.title
+        loc = f"{prefix}.{loc}" if prefix and e["loc"] else (prefix or loc)
         msg = e["msg"].removeprefix("Value error, ")
         got = e.get("input")
         shown = "" if isinstance(got, dict) else f" (got {got!r})"

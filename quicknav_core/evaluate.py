@@ -37,7 +37,9 @@ class EvalConfig(BaseModel):
     seed: int = Field(0, ge=0, le=2**31 - 1)
     split: Literal["train", "test"] = "test"
     deterministic: bool = True
-    gif_episodes: int = Field(3, ge=0, le=16, description="episodes drawn in the GIF")
+    gif_episodes: int = Field(
+        3, ge=0, le=1024, description="episodes whose per-step poses, lidar and actions are kept"
+    )
     pictures: bool = True
 
 
@@ -192,10 +194,11 @@ def _runner(env, agent: Agent, cfg: EvalConfig):
                 plen + jnp.where(alive, jnp.linalg.norm(states2.pos - states.pos, axis=-1), 0.0),
                 success | (alive & info["goal_reached"]), trunc | (alive & info["truncated"]),
             )  # fmt: skip
-            rec = (states2.pos, states2.theta[:g], states2.lidar_ranges[:g], states2.lidar_hits[:g])
+            rec = (states2.pos, states2.theta[:g], states2.lidar_ranges[:g], states2.lidar_hits[:g],
+                   action[:g])  # fmt: skip
             return carry, rec
 
-        final, (pos, theta, ranges, hits) = jax.lax.scan(step, carry0, act_keys)
+        final, (pos, theta, ranges, hits, actions) = jax.lax.scan(step, carry0, act_keys)
         _, _, _, _, _, steps, ret, coll, plen, success, trunc = final
         first = (states.theta[:g], states.lidar_ranges[:g], states.lidar_hits[:g])
         return (
@@ -211,6 +214,7 @@ def _runner(env, agent: Agent, cfg: EvalConfig):
             theta,
             ranges,
             hits,
+            actions,
             first,
         )
 
@@ -223,12 +227,14 @@ def run_episodes(env, params, agent: Agent, cfg: EvalConfig) -> Episodes:
     n = cfg.episodes
     keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(cfg.seed), i))(jnp.arange(n))
     out = jax.device_get(_runner(env, agent, cfg)(keys, params, agent.payload))
-    (states, ref, steps, ret, coll, plen, success, trunc, pos, theta, ranges, hits, first) = out
+    (states, ref, steps, ret, coll, plen, success, trunc, pos, theta, ranges, hits, actions,
+     first) = out  # fmt: skip
     traj = np.concatenate([np.asarray(states.pos)[None], np.asarray(pos)], axis=0).swapaxes(0, 1)
     gif = {
         "theta": np.concatenate([first[0][None], theta], axis=0).swapaxes(0, 1),
         "lidar_ranges": np.concatenate([first[1][None], ranges], axis=0).swapaxes(0, 1),
         "lidar_hits": np.concatenate([first[2][None], hits], axis=0).swapaxes(0, 1),
+        "actions": np.asarray(actions, np.float32).swapaxes(0, 1),  # (G, T, 2): action t -> pose t+1
     }
     return Episodes(
         success=np.asarray(success), truncated=np.asarray(trunc), steps=np.asarray(steps),

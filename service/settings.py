@@ -23,11 +23,18 @@ class Settings(BaseSettings):
     )
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=1, le=65535)
-    grpc_port: int = Field(50051, ge=1, le=65535, description="gRPC Rollout port")
-    grpc_enabled: bool = Field(True, description="start the gRPC Rollout server in `quicknav serve`")
+    grpc_port: int = Field(50051, ge=0, le=65535, description="gRPC Rollout port (0 = any free)")
+    grpc_enabled: bool = Field(
+        True, description="start the gRPC Rollout server in `quicknav serve`"
+    )
     rollout_max_sessions: int = Field(16, ge=1, le=10_000, description="concurrent rollout streams")
+    grpc_max_message_mb: int = Field(64, ge=1, le=2047, description="largest gRPC message, MiB")
+    rollout_policy_max_envs: int = Field(256, ge=1, le=1024, description="envs in policy mode")
     rollout_idle_s: float = Field(
-        300.0, gt=0.0, le=86_400, description="a rollout stream with no message for this long is closed"
+        300.0,
+        gt=0.0,
+        le=86_400,
+        description="a rollout stream with no message for this long is closed",
     )
     max_envs: int = Field(4096, ge=1, le=1_048_576)
     max_total_steps: int = Field(200_000_000, ge=1)

@@ -1,0 +1,254 @@
+"""A gRPC Rollout stream as a Python object: start a batch of remote envs, step it with numpy.
+
+with RolloutClient("localhost:50051") as rc:
+    started = rc.start(num_envs=64, seed=0, config={"grid_size": 8})
+    t = rc.step(np.zeros((64, 2), np.float32))
+    t.observations, t.rewards, t.terminated, t.truncated, t.final_observations
+"""
+
+from __future__ import annotations
+
+import json
+import queue
+import threading
+from dataclasses import dataclass
+from typing import Any
+
+import grpc
+import numpy as np
+from google.protobuf import struct_pb2
+
+from quicknav_client.proto.quicknav.v1 import rollout_pb2 as pb
+from quicknav_client.proto.quicknav.v1 import rollout_pb2_grpc as pb_grpc
+from quicknav_client.tensors import decode, encode
+
+SPLITS = {"train": pb.SPLIT_TRAIN, "test": pb.SPLIT_TEST}
+_CLOSE = object()
+
+
+class RolloutError(Exception):
+    """The server refused a request or the stream broke: ``code`` is the gRPC status code."""
+
+    def __init__(self, code: grpc.StatusCode, message: str):
+        super().__init__(f"{code.name}: {message}")
+        self.code = code
+        self.message = message
+
+
+@dataclass
+class Space:
+    """A box space: dtype, shape and per-element bounds."""
+
+    dtype: str
+    shape: tuple[int, ...]
+    low: np.ndarray
+    high: np.ndarray
+
+
+@dataclass
+class Started:
+    session_id: str
+    num_envs: int
+    observation_space: Space  # of one env
+    action_space: Space  # of one env
+    observations: np.ndarray  # (num_envs, obs_dim)
+    env_config: dict[str, Any]
+    max_steps: int
+
+
+@dataclass
+class Transition:
+    """One step of the batch. Envs that ended are already reset: their last observations are in
+    ``final_observations``, row j belonging to env ``done_indices[j]``."""
+
+    observations: np.ndarray  # (n, obs_dim) float32
+    rewards: np.ndarray  # (n,) float32
+    terminated: np.ndarray  # (n,) bool
+    truncated: np.ndarray  # (n,) bool
+    done_indices: np.ndarray  # (k,) int32
+    final_observations: np.ndarray  # (k, obs_dim) float32
+    collisions: np.ndarray  # (n,) bool
+    step_count: int
+
+
+@dataclass
+class Closed:
+    steps: int
+    env_steps: int
+    episodes: int
+
+
+@dataclass
+class PolicyFrame:
+    """One time step of a trained policy's episodes (policy mode)."""
+
+    step: int
+    poses: np.ndarray  # (n, 3) x, y, heading
+    lidar: np.ndarray  # (n, beams) ranges, metres
+    actions: np.ndarray  # (n, 2); empty on step 0
+    done: np.ndarray  # (n,)
+    goals: np.ndarray | None  # (n, 2) on the first frame
+    walls: np.ndarray | None  # (n, g, g) on the first frame
+    success: np.ndarray | None  # (n,) on the last frame
+
+
+def _space(spec: pb.BoxSpec) -> Space:
+    return Space(spec.dtype, tuple(spec.shape), decode(spec.low), decode(spec.high))
+
+
+def _metadata(token: str | None):
+    return (("authorization", f"Bearer {token}"),) if token else None
+
+
+class RolloutClient:
+    """One Rollout stream (one session). Use as a context manager, or call ``close()``."""
+
+    def __init__(
+        self,
+        target: str = "127.0.0.1:50051",
+        token: str | None = None,
+        timeout: float | None = None,
+        max_message_mb: int = 256,
+        channel: grpc.Channel | None = None,
+    ):
+        self.target = target
+        self.timeout = timeout
+        limit = max_message_mb * 2**20
+        self._own_channel = channel is None
+        self._channel = channel or grpc.insecure_channel(
+            target,
+            options=[
+                ("grpc.max_receive_message_length", limit),
+                ("grpc.max_send_message_length", limit),
+            ],
+        )
+        self._stub = pb_grpc.RolloutServiceStub(self._channel)
+        self._outbox: queue.SimpleQueue = queue.SimpleQueue()
+        self._responses = self._stub.Rollout(self._requests(), metadata=_metadata(token))
+        self._lock = threading.Lock()
+        self.started: Started | None = None
+        self.closed: Closed | None = None
+
+    def _requests(self):
+        while True:
+            msg = self._outbox.get()
+            if msg is _CLOSE:
+                return
+            yield msg
+
+    def _call(self, msg: pb.AgentMessage) -> pb.ServerMessage:
+        with self._lock:
+            self._outbox.put(msg)
+            return self._next()
+
+    def _next(self) -> pb.ServerMessage:
+        try:
+            return next(self._responses)
+        except grpc.RpcError as e:
+            raise RolloutError(e.code(), e.details() or "") from None
+        except StopIteration:
+            raise RolloutError(grpc.StatusCode.UNAVAILABLE, "the server ended the stream") from None
+
+    # ------------------------------------------------------------------ protocol
+    def start(
+        self,
+        num_envs: int = 1,
+        seed: int = 0,
+        config: dict[str, Any] | str | None = None,
+        split: str = "train",
+        policy_job: str | None = None,
+        stochastic: bool = False,
+    ) -> Started:
+        """Start ``num_envs`` envs with an EnvConfig (a dict of fields or its JSON)."""
+        if split not in SPLITS:
+            raise ValueError(f"split={split!r}: allowed values are 'train' and 'test'")
+        start = pb.Start(num_envs=num_envs, seed=seed, split=SPLITS[split])
+        if isinstance(config, str):
+            start.config_json = config
+        elif config:
+            fields = struct_pb2.Struct()
+            fields.update(json.loads(json.dumps(config)))
+            start.config_fields.CopyFrom(fields)
+        if policy_job:
+            start.policy.CopyFrom(pb.PolicySource(job_id=policy_job, stochastic=stochastic))
+            self._outbox.put(pb.AgentMessage(start=start))
+            return None  # frames follow: read them with policy_frames()
+        reply = self._call(pb.AgentMessage(start=start))
+        s = reply.started
+        self.started = Started(
+            session_id=s.session_id,
+            num_envs=s.num_envs,
+            observation_space=_space(s.observation_space),
+            action_space=_space(s.action_space),
+            observations=decode(s.observations),
+            env_config=json.loads(s.env_config_json),
+            max_steps=s.max_steps,
+        )
+        return self.started
+
+    def step(self, actions) -> Transition:
+        """Step every env; ``actions`` is (num_envs, 2) in [-1, 1]."""
+        reply = self._call(pb.AgentMessage(step=pb.Step(actions=encode(actions, "float32"))))
+        t = reply.transition
+        return Transition(
+            observations=decode(t.observations),
+            rewards=decode(t.rewards),
+            terminated=decode(t.terminated),
+            truncated=decode(t.truncated),
+            done_indices=decode(t.done_indices),
+            final_observations=decode(t.final_observations),
+            collisions=decode(t.collisions),
+            step_count=t.step_count,
+        )
+
+    def reset(self, seed: int | None = None) -> np.ndarray:
+        """New episodes in every env (same seed, same episodes); returns the first observations."""
+        reset = pb.Reset() if seed is None else pb.Reset(seed=seed)
+        return decode(self._call(pb.AgentMessage(reset=reset)).reset.observations)
+
+    def policy_frames(self):
+        """The frames of a policy-mode stream (after ``start(policy_job=...)``), then Closed."""
+        while True:
+            msg = self._next()
+            kind = msg.WhichOneof("payload")
+            if kind == "closed":
+                self.closed = Closed(msg.closed.steps, msg.closed.env_steps, msg.closed.episodes)
+                self._finish()
+                return
+            f = msg.frame
+            yield PolicyFrame(
+                step=f.step,
+                poses=decode(f.poses),
+                lidar=decode(f.lidar),
+                actions=decode(f.actions),
+                done=decode(f.done),
+                goals=decode(f.goals) if f.HasField("goals") else None,
+                walls=decode(f.walls) if f.HasField("walls") else None,
+                success=decode(f.success) if f.HasField("success") else None,
+            )
+
+    def close(self) -> Closed | None:
+        """Close the session (the server replies with totals) and the channel."""
+        if self.closed is None and self._responses is not None:
+            try:
+                reply = self._call(pb.AgentMessage(close=pb.Close()))
+                c = reply.closed
+                self.closed = Closed(c.steps, c.env_steps, c.episodes)
+            except RolloutError:
+                pass  # the stream had already ended; nothing to close
+        self._finish()
+        return self.closed
+
+    def _finish(self) -> None:
+        self._outbox.put(_CLOSE)
+        if self._responses is not None:
+            self._responses.cancel()
+            self._responses = None
+        if self._own_channel:
+            self._channel.close()
+
+    def __enter__(self) -> RolloutClient:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

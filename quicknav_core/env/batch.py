@@ -1,0 +1,133 @@
+"""A batch of QuickNav envs held on the device and stepped from the host, one call per step.
+
+For serving environments to remote agents: the whole batch steps in one jit-compiled call with
+auto-reset, compiled once per (env config, batch size) and shared by every holder of that shape.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from quicknav_core.config import EnvConfig, Split
+from quicknav_core.env.quicknav import _fmix32
+
+_COMPILED: dict[Any, tuple[Any, Any]] = {}
+_PARAMS: dict[Any, Any] = {}
+
+
+@dataclass
+class StepResult:
+    """One batched step, as numpy arrays (``final_obs`` only for the envs that just ended)."""
+
+    obs: np.ndarray  # (n, obs_dim) float32, already reset where done
+    reward: np.ndarray  # (n,) float32
+    terminated: np.ndarray  # (n,) bool
+    truncated: np.ndarray  # (n,) bool
+    collision: np.ndarray  # (n,) bool
+    done_indices: np.ndarray  # (k,) int32
+    final_obs: np.ndarray  # (k, obs_dim) float32
+
+
+def step_keys(counter: jax.Array, num_envs: int) -> jax.Array:
+    """Per-env keys for one step: raw uint32 pairs (hash of the session word and step, env index).
+
+    The dynamics are deterministic; the key only seeds an auto-reset, and the env hashes key data
+    itself (``hash_key_bits``), so a Threefry split of ``num_envs`` keys every step is not needed.
+    """
+    word = _fmix32(counter[0] ^ _fmix32(counter[1] * jnp.uint32(0x9E3779B9) + jnp.uint32(1)))
+    i = jnp.arange(num_envs, dtype=jnp.uint32)
+    return jnp.stack([jnp.broadcast_to(word, (num_envs,)), i], axis=-1)
+
+
+def _compiled(env, num_envs: int, sharding):
+    """(reset, step) for this env, batch size and device layout, jit-compiled once and cached."""
+    key = (env, num_envs, sharding)
+    if key in _COMPILED:
+        return _COMPILED[key]
+    if len(_COMPILED) >= 32:
+        _COMPILED.pop(next(iter(_COMPILED)))
+
+    def reset(rng, params):
+        keys = jax.random.split(rng, num_envs)
+        obs, state = jax.vmap(env.reset, in_axes=(0, None))(keys, params)
+        if sharding is not None:
+            state = jax.lax.with_sharding_constraint(state, sharding)
+        return state, obs
+
+    def step(counter, state, action, params):
+        keys = step_keys(counter, num_envs)
+        obs, state, reward, done, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
+            keys, state, action, params
+        )
+        final = info["final_obs"] if env.final_obs else obs
+        counter = counter.at[1].add(jnp.uint32(1))
+        return (counter, state, obs, reward, info["terminated"], info["truncated"],
+                info["collision"], final)  # fmt: skip
+
+    _COMPILED[key] = (jax.jit(reset), jax.jit(step, donate_argnums=(0, 1)))
+    return _COMPILED[key]
+
+
+def env_and_params(config: EnvConfig, split: Split):
+    """The env and its params for a config and split (room banks built once per config)."""
+    key = (config, split)
+    if key not in _PARAMS:
+        if len(_PARAMS) >= 16:  # many distinct configs from remote agents must not grow memory
+            _PARAMS.pop(next(iter(_PARAMS)))
+        # final observations are part of the protocol, whatever the config says
+        _PARAMS[key] = config.model_copy(update={"final_obs": True}).build(split)
+    return _PARAMS[key]
+
+
+class BatchedEnv:
+    """``num_envs`` auto-resetting envs on the device; ``step`` takes and returns numpy."""
+
+    def __init__(self, config: EnvConfig, num_envs: int, seed: int = 0, split: Split = "train"):
+        self.config = config
+        self.num_envs = int(num_envs)
+        self.env, self.params = env_and_params(config, split)
+        # Large batches are split over the local devices (several CPU devices when XLA is told
+        # to expose one per core, several GPUs); small ones stay on one device.
+        ndev = jax.local_device_count()
+        self._sharding = None
+        if ndev > 1 and self.num_envs % ndev == 0 and self.num_envs >= 256 * ndev:
+            mesh = jax.sharding.Mesh(np.asarray(jax.local_devices()), ("envs",))
+            self._sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("envs"))
+        self._reset, self._step = _compiled(self.env, self.num_envs, self._sharding)
+        self._rng = jax.random.PRNGKey(seed)
+        self._counter = None
+        self.state = None
+        self.obs_dim = config.obs_dim
+
+    def reset(self, seed: int | None = None) -> np.ndarray:
+        """Start a fresh episode in every env; returns the first observations."""
+        if seed is not None:
+            self._rng = jax.random.PRNGKey(seed)
+        self._rng, sub, word = jax.random.split(self._rng, 3)
+        # the step counter: (a word drawn from the session's key stream, steps since reset)
+        self._counter = jnp.stack([jax.random.bits(word, (), jnp.uint32), jnp.uint32(0)])
+        self.state, obs = self._reset(sub, self.params)
+        return np.asarray(obs)
+
+    def step(self, actions: np.ndarray) -> StepResult:
+        """One step of every env with (num_envs, 2) float32 actions."""
+        actions = np.asarray(actions, np.float32)
+        if self._sharding is not None:
+            actions = jax.device_put(actions, self._sharding)
+        out = self._step(self._counter, self.state, actions, self.params)
+        self._counter, self.state, obs, reward, term, trunc, coll, final = out
+        term, trunc = np.asarray(term), np.asarray(trunc)
+        done_idx = np.flatnonzero(term | trunc).astype(np.int32)
+        # the final observations cross to the host only when an episode ended
+        final_obs = (
+            np.asarray(final)[done_idx]
+            if done_idx.size
+            else np.zeros((0, self.obs_dim), np.float32)
+        )
+        return StepResult(np.asarray(obs), np.asarray(reward), term, trunc, np.asarray(coll),
+                          done_idx, final_obs)  # fmt: skip

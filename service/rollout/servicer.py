@@ -1,0 +1,379 @@
+"""The gRPC ``Rollout`` servicer: one bidirectional stream per agent, one batch of envs per stream.
+
+Protocol (quicknav/v1/rollout.proto): Start -> Started, Step -> Transition, Reset -> ResetDone,
+Close -> Closed. Every refused request ends the stream with an exact status code and a message
+naming what was wrong and what is allowed; nothing a client sends can take down the server or
+another stream. JAX calls run on a thread pool, never on the event loop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hmac
+import itertools
+import logging
+import uuid
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import grpc
+import numpy as np
+from google.protobuf import json_format
+from pydantic import ValidationError
+from quicknav_client.proto.quicknav.v1 import rollout_pb2 as pb
+from quicknav_client.proto.quicknav.v1 import rollout_pb2_grpc as pb_grpc
+from quicknav_client.tensors import TensorError, decode, encode
+
+from service.settings import Settings
+
+log = logging.getLogger("quicknav.rollout")
+
+_SPLITS = {pb.SPLIT_UNSPECIFIED: "train", pb.SPLIT_TRAIN: "train", pb.SPLIT_TEST: "test"}
+# Stepping this few envs costs less than the hop to a worker thread; they run inline.
+INLINE_MAX_ENVS = 64
+
+
+class Refused(Exception):
+    """A request the server refuses: ends the stream with ``code`` and ``message``."""
+
+    def __init__(self, code: grpc.StatusCode, message: str):
+        super().__init__(message)
+        self.code = code
+        self.message = message
+
+
+@dataclass
+class Session:
+    id: str = field(default_factory=lambda: uuid.uuid4().hex[:12])
+    env: Any = None  # quicknav_core.env.batch.BatchedEnv once started
+    counted: bool = False  # holds one of the server's session slots
+    steps: int = 0
+    episodes: int = 0
+
+
+def _bearer(context: grpc.aio.ServicerContext) -> str | None:
+    for key, value in context.invocation_metadata() or ():
+        if key.lower() == "authorization" and isinstance(value, str):
+            return value.removeprefix("Bearer ").strip()
+    return None
+
+
+def parse_env_config(start: pb.Start, settings: Settings):
+    """The EnvConfig a Start carries, validated against the model and the server's limits."""
+    from quicknav_core.config import EnvConfig, format_validation_error
+
+    which = start.WhichOneof("config")
+    try:
+        if which == "config_json":
+            config = EnvConfig.model_validate_json(start.config_json or "{}")
+        elif which == "config_fields":
+            fields = json_format.MessageToDict(start.config_fields)
+            config = EnvConfig.model_validate(_ints_where_integral(fields))
+        else:
+            config = EnvConfig()
+    except ValidationError as e:
+        raise Refused(
+            grpc.StatusCode.INVALID_ARGUMENT, format_validation_error(e, prefix="start.config")
+        ) from None
+    if config.grid_size > settings.max_grid_size:
+        raise Refused(
+            grpc.StatusCode.INVALID_ARGUMENT,
+            f"start.config.grid_size={config.grid_size} exceeds this server's limit; allowed range"
+            f" 4..{settings.max_grid_size} (QUICKNAV_MAX_GRID_SIZE)",
+        )
+    return config
+
+
+def _ints_where_integral(value):
+    """protobuf Struct numbers are doubles: give integral ones back as ints (grid_size=8.0 -> 8)."""
+    if isinstance(value, dict):
+        return {k: _ints_where_integral(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_ints_where_integral(v) for v in value]
+    if isinstance(value, float) and value.is_integer() and abs(value) < 2**53:
+        return int(value)
+    return value
+
+
+def _box(low: np.ndarray, high: np.ndarray) -> pb.BoxSpec:
+    return pb.BoxSpec(dtype="float32", shape=list(low.shape), low=encode(low), high=encode(high))
+
+
+class RolloutServicer(pb_grpc.RolloutServiceServicer):
+    """Serves ``RolloutService.Rollout``; one instance per server, any number of streams."""
+
+    def __init__(self, settings: Settings, executor: ThreadPoolExecutor | None = None):
+        self.settings = settings
+        self.executor = executor or ThreadPoolExecutor(
+            max_workers=min(32, settings.rollout_max_sessions + 2), thread_name_prefix="rollout"
+        )
+        self.active_sessions = 0
+        self.total_sessions = itertools.count(1)
+        self._handlers = {
+            "start": self._start,
+            "step": self._step,
+            "reset": self._reset,
+            "close": self._close,
+        }
+
+    async def _run(self, fn, *args):
+        return await asyncio.get_running_loop().run_in_executor(self.executor, fn, *args)
+
+    # ------------------------------------------------------------------ the stream
+    async def Rollout(self, request_iterator, context: grpc.aio.ServicerContext):
+        token = self.settings.api_token
+        if token and not hmac.compare_digest((_bearer(context) or "").encode(), token.encode()):
+            await context.abort(
+                grpc.StatusCode.UNAUTHENTICATED,
+                "this server requires the API token: send call metadata"
+                " 'authorization: Bearer <token>' (the QUICKNAV_API_TOKEN of the service)",
+            )
+        session = Session()
+        idle = self.settings.rollout_idle_s
+        try:
+            while True:
+                try:
+                    msg = await asyncio.wait_for(context.read(), timeout=idle)
+                except TimeoutError:
+                    raise Refused(
+                        grpc.StatusCode.DEADLINE_EXCEEDED,
+                        f"no message for {idle:g} s (QUICKNAV_ROLLOUT_IDLE_S): the session was"
+                        " closed; open a new stream and send Start",
+                    ) from None
+                if msg is grpc.aio.EOF:
+                    return
+                kind = msg.WhichOneof("payload")
+                handler = self._handlers.get(kind)
+                if handler is None:
+                    raise Refused(
+                        grpc.StatusCode.INVALID_ARGUMENT,
+                        "empty AgentMessage: set one of start, step, reset, close",
+                    )
+                finished = await handler(session, getattr(msg, kind), context)
+                if finished:
+                    return
+        except Refused as r:
+            await context.abort(r.code, r.message)
+        except asyncio.CancelledError:
+            raise  # the client went away
+        except Exception as e:  # a bug, not a bad request: say so, keep serving others
+            log.exception("rollout session %s failed", session.id)
+            await context.abort(grpc.StatusCode.INTERNAL, f"{type(e).__name__}: {e}")
+        finally:
+            if session.counted:
+                self.active_sessions -= 1
+
+    # ------------------------------------------------------------------ handlers
+    async def _start(self, session: Session, start: pb.Start, context) -> bool:
+        if session.env is not None:
+            raise Refused(
+                grpc.StatusCode.FAILED_PRECONDITION,
+                "Start was already sent on this stream: send Reset for new episodes, or open a"
+                " new stream for another config",
+            )
+        s = self.settings
+        config = parse_env_config(start, s)
+        num_envs = start.num_envs or 1
+        if num_envs > s.max_envs:
+            raise Refused(
+                grpc.StatusCode.RESOURCE_EXHAUSTED,
+                f"start.num_envs={num_envs} exceeds this server's limit; allowed range"
+                f" 1..{s.max_envs} (QUICKNAV_MAX_ENVS)",
+            )
+        message_bytes = 2 * num_envs * config.obs_dim * 4
+        if message_bytes > s.grpc_max_message_mb * 2**20:
+            raise Refused(
+                grpc.StatusCode.RESOURCE_EXHAUSTED,
+                f"start.num_envs={num_envs} with obs_dim={config.obs_dim} needs messages of up to"
+                f" {message_bytes / 2**20:.1f} MiB; this server allows {s.grpc_max_message_mb} MiB"
+                " (QUICKNAV_GRPC_MAX_MESSAGE_MB): use fewer envs or beams per stream",
+            )
+        if start.split not in _SPLITS:
+            raise Refused(
+                grpc.StatusCode.INVALID_ARGUMENT,
+                f"start.split={start.split}: allowed values are SPLIT_TRAIN (1) and SPLIT_TEST (2)",
+            )
+        if start.seed >= 2**63:
+            raise Refused(
+                grpc.StatusCode.INVALID_ARGUMENT,
+                f"start.seed={start.seed}: allowed range 0..{2**63 - 1}",
+            )
+        if self.active_sessions >= s.rollout_max_sessions:
+            raise Refused(
+                grpc.StatusCode.RESOURCE_EXHAUSTED,
+                f"{self.active_sessions} rollout sessions are open, the limit"
+                f" (QUICKNAV_ROLLOUT_MAX_SESSIONS) is {s.rollout_max_sessions}: close one or retry"
+                " later",
+            )
+        self.active_sessions += 1
+        session.counted = True
+        split = _SPLITS[start.split]
+        if start.HasField("policy") and start.policy.job_id:
+            if num_envs > s.rollout_policy_max_envs:
+                raise Refused(
+                    grpc.StatusCode.RESOURCE_EXHAUSTED,
+                    f"start.num_envs={num_envs} in policy mode; allowed range"
+                    f" 1..{s.rollout_policy_max_envs} (QUICKNAV_ROLLOUT_POLICY_MAX_ENVS)",
+                )
+            await self._stream_policy(session, start, config, num_envs, split, context)
+            return True
+
+        from quicknav_core.env.batch import BatchedEnv
+        from quicknav_core.env.bounds import observation_bounds
+
+        def build():
+            env = BatchedEnv(config, num_envs, seed=start.seed % 2**32, split=split)
+            return env, env.reset()
+
+        session.env, obs = await self._run(build)
+        low, high = observation_bounds(config)
+        await context.write(
+            pb.ServerMessage(
+                started=pb.Started(
+                    session_id=session.id,
+                    num_envs=num_envs,
+                    observation_space=_box(low, high),
+                    action_space=_box(-np.ones(2, np.float32), np.ones(2, np.float32)),
+                    observations=encode(obs),
+                    env_config_json=config.model_dump_json(),
+                    max_steps=config.max_steps,
+                )
+            )
+        )
+        return False
+
+    def _actions(self, session: Session, step: pb.Step) -> np.ndarray:
+        n = session.env.num_envs
+        if not step.HasField("actions"):
+            raise Refused(grpc.StatusCode.INVALID_ARGUMENT, f"step.actions is missing: send a"
+                          f" float32 tensor of shape [{n}, 2]")  # fmt: skip
+        try:
+            actions = decode(step.actions, "step.actions")
+        except TensorError as e:
+            raise Refused(grpc.StatusCode.INVALID_ARGUMENT, str(e)) from None
+        if actions.dtype.kind != "f":
+            raise Refused(
+                grpc.StatusCode.INVALID_ARGUMENT,
+                f"step.actions.dtype={actions.dtype.name}: allowed float32 (or float16/float64)",
+            )
+        if actions.shape != (n, 2):
+            raise Refused(
+                grpc.StatusCode.INVALID_ARGUMENT,
+                f"step.actions has shape {list(actions.shape)}; expected [{n}, 2] (num_envs of"
+                " this session, then left and right wheel speed in [-1, 1])",
+            )
+        bad = ~np.isfinite(actions)
+        if bad.any():
+            envs = np.flatnonzero(bad.any(axis=1))
+            raise Refused(
+                grpc.StatusCode.INVALID_ARGUMENT,
+                f"step.actions holds NaN or infinite values for env(s) {envs[:8].tolist()}"
+                f"{' …' if envs.size > 8 else ''}; actions must be finite, in [-1, 1]",
+            )
+        return actions
+
+    async def _step(self, session: Session, step: pb.Step, context) -> bool:
+        if session.env is None:
+            raise Refused(
+                grpc.StatusCode.FAILED_PRECONDITION, "Step before Start: send Start first"
+            )
+        actions = self._actions(session, step)
+        env = session.env
+        if env.num_envs <= INLINE_MAX_ENVS:
+            r = env.step(actions)
+        else:
+            r = await self._run(env.step, actions)
+        session.steps += 1
+        session.episodes += int(r.done_indices.size)
+        await context.write(
+            pb.ServerMessage(
+                transition=pb.Transition(
+                    observations=encode(r.obs),
+                    rewards=encode(r.reward),
+                    terminated=encode(r.terminated),
+                    truncated=encode(r.truncated),
+                    done_indices=encode(r.done_indices),
+                    final_observations=encode(r.final_obs),
+                    collisions=encode(r.collision),
+                    step_count=session.steps,
+                )
+            )
+        )
+        return False
+
+    async def _reset(self, session: Session, reset: pb.Reset, context) -> bool:
+        if session.env is None:
+            raise Refused(
+                grpc.StatusCode.FAILED_PRECONDITION, "Reset before Start: send Start first"
+            )
+        seed = reset.seed % 2**32 if reset.HasField("seed") else None
+        obs = await self._run(session.env.reset, seed)
+        await context.write(pb.ServerMessage(reset=pb.ResetDone(observations=encode(obs))))
+        return False
+
+    async def _close(self, session: Session, close: pb.Close, context) -> bool:
+        n = session.env.num_envs if session.env is not None else 0
+        await context.write(
+            pb.ServerMessage(
+                closed=pb.Closed(
+                    steps=session.steps, env_steps=session.steps * n, episodes=session.episodes
+                )
+            )
+        )
+        return True
+
+    # ------------------------------------------------------------------ policy mode
+    async def _stream_policy(self, session, start, config, num_envs, split, context) -> None:
+        job_id = start.policy.job_id
+        run_dir = self.settings.artifacts_dir / job_id
+        if not _is_plain_id(job_id) or not (run_dir / "checkpoint").is_dir():
+            raise Refused(
+                grpc.StatusCode.NOT_FOUND,
+                f"start.policy.job_id={job_id!r}: no train job with a checkpoint by that id in"
+                f" this service's artifacts ({self.settings.artifacts_dir})",
+            )
+        episodes = await self._run(
+            _policy_episodes, run_dir, num_envs, start.seed % 2**31, split,
+            not start.policy.stochastic,
+        )  # fmt: skip
+        ep, run_config = episodes
+        steps = int(ep.steps.max())
+        for t in range(steps + 1):
+            done = ep.steps <= t - 1 if t else np.zeros(num_envs, bool)
+            frame = pb.PolicyFrame(
+                step=t,
+                poses=encode(np.concatenate([ep.trajectories[:, t], ep.gif["theta"][:, t, None]], 1)
+                             .astype(np.float32)),
+                lidar=encode(ep.gif["lidar_ranges"][:, t].astype(np.float32)),
+                actions=encode(ep.gif["actions"][:, t - 1] if t else np.zeros((0, 2), np.float32)),
+                done=encode(done),
+            )  # fmt: skip
+            if t == 0:
+                frame.goals.CopyFrom(encode(ep.goals.astype(np.float32)))
+                frame.walls.CopyFrom(encode(ep.walls.astype(bool)))
+            if t == steps:
+                frame.success.CopyFrom(encode(ep.success.astype(bool)))
+            await context.write(pb.ServerMessage(frame=frame))
+        session.episodes = num_envs
+        await context.write(
+            pb.ServerMessage(
+                closed=pb.Closed(steps=steps, env_steps=int(ep.steps.sum()), episodes=num_envs)
+            )
+        )
+
+
+def _is_plain_id(job_id: str) -> bool:
+    return bool(job_id) and all(c.isalnum() or c in "-_" for c in job_id) and len(job_id) <= 64
+
+
+def _policy_episodes(run_dir: Path, num_envs: int, seed: int, split: str, deterministic: bool):
+    """One episode per env of a trained job's policy, with per-step poses, lidar and actions."""
+    from quicknav_core.evaluate import EvalConfig, agent_from_run, run_episodes
+
+    agent, env_config, _ = agent_from_run(run_dir)
+    env, params = env_config.build(split)
+    cfg = EvalConfig(episodes=num_envs, seed=seed, deterministic=deterministic,
+                     gif_episodes=num_envs)  # fmt: skip
+    return run_episodes(env, params, agent, cfg), env_config

@@ -1,0 +1,241 @@
+"""The gRPC Rollout service over a real channel to an in-process server on a free port."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import grpc
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from quicknav_client.rollout import RolloutClient, RolloutError
+
+from quicknav_core.config import EnvConfig
+from quicknav_core.env.batch import env_and_params, step_keys
+from service.rollout.server import BackgroundServer
+from service.settings import Settings
+
+CONFIG = {"grid_size": 8, "train_rooms": 16, "test_rooms": 8, "lidar_beams": 8, "max_steps": 12}
+N = 4
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    settings = Settings(data_dir=tmp_path_factory.mktemp("data"), host="127.0.0.1", grpc_port=0,
+                        max_envs=64, rollout_max_sessions=3)  # fmt: skip
+    srv = BackgroundServer(settings, port=0).start()
+    yield srv
+    srv.stop()
+
+
+@pytest.fixture(scope="module")
+def strict_server(tmp_path_factory):
+    """Token required, short idle timeout."""
+    settings = Settings(data_dir=tmp_path_factory.mktemp("data"), host="127.0.0.1", grpc_port=0,
+                        api_token="s3cret-token", rollout_idle_s=0.5)  # fmt: skip
+    srv = BackgroundServer(settings, port=0).start()
+    yield srv
+    srv.stop()
+
+
+def _target(srv) -> str:
+    return f"127.0.0.1:{srv.port}"
+
+
+def _actions(rng, n=N):
+    return rng.uniform(-1, 1, (n, 2)).astype(np.float32)
+
+
+def _reference(seed: int, n: int, actions: list[np.ndarray]):
+    """The same session computed with the JAX env directly (vmapped gymnax step, no service)."""
+    env, params = env_and_params(EnvConfig(**CONFIG), "train")
+    rng = jax.random.PRNGKey(seed)
+    rng, sub, word = jax.random.split(rng, 3)
+    counter = jnp.stack([jax.random.bits(word, (), jnp.uint32), jnp.uint32(0)])
+    obs, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(sub, n), params)
+    out = [np.asarray(obs)]
+    for a in actions:
+        keys = step_keys(counter, n)
+        obs, state, reward, done, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
+            keys, state, jnp.asarray(a), params
+        )
+        counter = counter.at[1].add(1)
+        out.append((np.asarray(obs), np.asarray(reward), np.asarray(info["terminated"]),
+                    np.asarray(info["truncated"]), np.asarray(info["final_obs"])))  # fmt: skip
+    return out
+
+
+def test_rollout__full_session_matches_the_jax_env(server):
+    rng = np.random.default_rng(0)
+    actions = [_actions(rng) for _ in range(30)]
+    ref = _reference(7, N, actions)
+    with RolloutClient(_target(server)) as rc:
+        started = rc.start(num_envs=N, seed=7, config=CONFIG)
+        assert started.num_envs == N and started.max_steps == 12
+        obs_dim = EnvConfig(**CONFIG).obs_dim
+        assert started.observation_space.shape == (obs_dim,)
+        assert started.action_space.shape == (2,)
+        assert np.all(started.action_space.low == -1) and np.all(started.action_space.high == 1)
+        assert started.env_config["grid_size"] == 8
+        np.testing.assert_array_equal(started.observations, ref[0])
+        ended = 0
+        for a, (obs, reward, term, trunc, final) in zip(actions, ref[1:], strict=True):
+            t = rc.step(a)
+            np.testing.assert_array_equal(t.observations, obs)
+            np.testing.assert_array_equal(t.rewards, reward)
+            np.testing.assert_array_equal(t.terminated, term)
+            np.testing.assert_array_equal(t.truncated, trunc)
+            # auto-reset: exactly the envs that ended carry their final observation
+            np.testing.assert_array_equal(t.done_indices, np.flatnonzero(term | trunc))
+            np.testing.assert_array_equal(t.final_observations, final[term | trunc])
+            assert np.all(started.observation_space.low <= t.observations)
+            assert np.all(t.observations <= started.observation_space.high)
+            ended += t.done_indices.size
+        assert ended >= N * 2  # max_steps=12 over 30 steps: every env ended at least twice
+        closed = rc.close()
+    assert closed.steps == 30 and closed.env_steps == 30 * N and closed.episodes == ended
+
+
+def test_rollout__truncated_envs_restart_and_final_obs_is_the_last_pose(server):
+    with RolloutClient(_target(server)) as rc:
+        rc.start(num_envs=N, seed=1, config=CONFIG)
+        prev = None
+        for i in range(12):
+            t = rc.step(np.zeros((N, 2), np.float32))  # standing still: only truncation ends it
+            if i < 11:
+                assert t.done_indices.size == 0
+                prev = t.observations
+        assert np.all(t.truncated) and not np.any(t.terminated)
+        np.testing.assert_array_equal(t.done_indices, np.arange(N))
+        np.testing.assert_allclose(t.final_observations, prev)  # the robot did not move
+        assert not np.allclose(t.observations[:, :2], prev[:, :2])  # new episodes, new starts
+
+
+def test_rollout__reset_with_a_seed_repeats_the_episodes(server):
+    with RolloutClient(_target(server)) as rc:
+        first = rc.start(num_envs=N, seed=3, config=CONFIG).observations
+        rc.step(_actions(np.random.default_rng(1)))
+        again = rc.reset(seed=3)
+        other = rc.reset(seed=4)
+    np.testing.assert_array_equal(again, first)
+    assert not np.array_equal(first, other)
+
+
+def _code(fn) -> tuple[grpc.StatusCode, str]:
+    with pytest.raises(RolloutError) as e:
+        fn()
+    return e.value.code, e.value.message
+
+
+def test_rollout__errors_are_exact_status_codes(server):
+    t = _target(server)
+
+    def step_before_start():
+        with RolloutClient(t) as rc:
+            rc.step(np.zeros((1, 2), np.float32))
+
+    code, msg = _code(step_before_start)
+    assert code == grpc.StatusCode.FAILED_PRECONDITION and "Start" in msg
+
+    def session(action):
+        with RolloutClient(t) as rc:
+            rc.start(num_envs=N, config=CONFIG)
+            rc.step(action)
+
+    code, msg = _code(lambda: session(np.zeros((N + 1, 2), np.float32)))
+    assert code == grpc.StatusCode.INVALID_ARGUMENT and "[5, 2]" in msg and "[4, 2]" in msg
+    nan = np.zeros((N, 2), np.float32)
+    nan[2, 1] = np.nan
+    code, msg = _code(lambda: session(nan))
+    assert code == grpc.StatusCode.INVALID_ARGUMENT and "NaN" in msg and "[2]" in msg
+
+    def start(**kw):
+        with RolloutClient(t) as rc:
+            rc.start(**kw)
+
+    code, msg = _code(lambda: start(num_envs=N, config={**CONFIG, "grid_size": 2}))
+    assert code == grpc.StatusCode.INVALID_ARGUMENT and "start.config.grid_size" in msg
+    code, msg = _code(lambda: start(num_envs=N, config={**CONFIG, "bogus": 1}))
+    assert code == grpc.StatusCode.INVALID_ARGUMENT and "bogus" in msg
+    code, msg = _code(lambda: start(num_envs=65, config=CONFIG))
+    assert code == grpc.StatusCode.RESOURCE_EXHAUSTED and "1..64" in msg and "MAX_ENVS" in msg
+
+    def start_twice():
+        with RolloutClient(t) as rc:
+            rc.start(num_envs=N, config=CONFIG)
+            rc.start(num_envs=N, config=CONFIG)
+
+    code, msg = _code(start_twice)
+    assert code == grpc.StatusCode.FAILED_PRECONDITION and "already" in msg
+
+    # the session still works after all of that
+    with RolloutClient(t) as rc:
+        rc.start(num_envs=N, config=CONFIG)
+        assert rc.step(np.zeros((N, 2), np.float32)).observations.shape[0] == N
+
+
+def test_rollout__policy_job_that_does_not_exist_is_not_found(server):
+    rc = RolloutClient(_target(server))
+    rc.start(num_envs=2, config=CONFIG, policy_job="no-such-job")
+    code, msg = _code(lambda: list(rc.policy_frames()))
+    assert code == grpc.StatusCode.NOT_FOUND and "no-such-job" in msg
+
+
+def test_rollout__session_limit_is_resource_exhausted(server):
+    clients = [RolloutClient(_target(server)) for _ in range(3)]
+    try:
+        for c in clients:
+            c.start(num_envs=N, config=CONFIG)
+
+        def fourth():
+            with RolloutClient(_target(server)) as rc:
+                rc.start(num_envs=N, config=CONFIG)
+
+        code, msg = _code(fourth)
+        assert code == grpc.StatusCode.RESOURCE_EXHAUSTED and "ROLLOUT_MAX_SESSIONS" in msg
+    finally:
+        for c in clients:
+            c.close()
+    deadline = time.time() + 5  # the slots come back once the streams end
+    while server.servicer.active_sessions and time.time() < deadline:
+        time.sleep(0.05)
+    assert server.servicer.active_sessions == 0
+
+
+def test_rollout__token_and_idle_timeout(strict_server):
+    t = _target(strict_server)
+    code, msg = _code(lambda: RolloutClient(t).start(num_envs=1, config=CONFIG))
+    assert code == grpc.StatusCode.UNAUTHENTICATED and "authorization" in msg
+    code, _ = _code(lambda: RolloutClient(t, token="wrong-token").start(num_envs=1, config=CONFIG))
+    assert code == grpc.StatusCode.UNAUTHENTICATED
+    rc = RolloutClient(t, token="s3cret-token")
+    rc.start(num_envs=1, config=CONFIG)
+    time.sleep(1.0)  # longer than rollout_idle_s=0.5
+    code, msg = _code(lambda: rc.step(np.zeros((1, 2), np.float32)))
+    assert code == grpc.StatusCode.DEADLINE_EXCEEDED and "ROLLOUT_IDLE_S" in msg
+
+
+def test_rollout__concurrent_streams_are_isolated(server):
+    rng = np.random.default_rng(5)
+    plans = {seed: [_actions(rng) for _ in range(20)] for seed in (11, 12)}
+
+    def run(seed, out):
+        with RolloutClient(_target(server)) as rc:
+            rows = [rc.start(num_envs=N, seed=seed, config=CONFIG).observations]
+            for a in plans[seed]:
+                rows.append(rc.step(a).observations)
+                time.sleep(0.001)  # interleave the two streams
+        out[seed] = np.stack(rows)
+
+    together: dict[int, np.ndarray] = {}
+    threads = [threading.Thread(target=run, args=(s, together)) for s in plans]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join(60)
+    for seed, actions in plans.items():
+        ref = _reference(seed, N, actions)
+        alone = np.stack([ref[0]] + [r[0] for r in ref[1:]])
+        np.testing.assert_array_equal(together[seed], alone)
