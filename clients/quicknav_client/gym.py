@@ -11,7 +11,7 @@ Needs the ``gym`` extra: ``pip install "quicknav-client[gym]"``.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -45,7 +45,7 @@ def _seed_of(seed: int | list[int] | None) -> int | None:
 class RemoteVectorEnv(VectorEnv):
     """``num_envs`` QuickNav envs stepped on a remote server, one gRPC message per batch step."""
 
-    metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
+    metadata: ClassVar[dict] = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
 
     def __init__(
         self,
@@ -106,7 +106,7 @@ class RemoteVectorEnv(VectorEnv):
 class RemoteEnv(gym.Env):
     """One remote QuickNav env as a ``gymnasium.Env`` (call ``reset`` after an episode ends)."""
 
-    metadata = {"render_modes": []}
+    metadata: ClassVar[dict] = {"render_modes": []}
 
     def __init__(
         self,
