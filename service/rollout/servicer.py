@@ -341,7 +341,7 @@ class RolloutServicer(pb_grpc.RolloutServiceServicer):
         ep, run_config = episodes
         steps = int(ep.steps.max())
         for t in range(steps + 1):
-            done = ep.steps <= t - 1 if t else np.zeros(num_envs, bool)
+            done = ep.steps <= t if t else np.zeros(num_envs, bool)  # ended after `steps` actions
             frame = pb.PolicyFrame(
                 step=t,
                 poses=encode(np.concatenate([ep.trajectories[:, t], ep.gif["theta"][:, t, None]], 1)

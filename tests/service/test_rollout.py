@@ -239,3 +239,34 @@ def test_rollout__concurrent_streams_are_isolated(server):
         ref = _reference(seed, N, actions)
         alone = np.stack([ref[0]] + [r[0] for r in ref[1:]])
         np.testing.assert_array_equal(together[seed], alone)
+
+
+def test_rollout__policy_mode_streams_a_trained_jobs_episodes(server):
+    from quicknav_core.config import TrainConfig
+    from quicknav_core.train import train_run
+
+    cfg = TrainConfig.model_validate({
+        "env": {"grid_size": 8, "train_rooms": 32, "test_rooms": 16, "max_steps": 40},
+        "algorithm": {"name": "ppo", "num_steps": 16, "num_minibatches": 2, "num_epochs": 1},
+        "network": {"kind": "mlp", "hidden_sizes": [16]},
+        "num_envs": 8, "total_steps": 256, "chunk_steps": 128,
+    })  # fmt: skip
+    train_run(cfg, server.settings.artifacts_dir / "job-policy")
+    rc = RolloutClient(_target(server))
+    assert rc.start(num_envs=3, seed=2, split="test", policy_job="job-policy") is None
+    frames = list(rc.policy_frames())
+    first, last = frames[0], frames[-1]
+    assert [f.step for f in frames] == list(range(len(frames)))
+    assert first.walls.shape == (3, 8, 8) and first.goals.shape == (3, 2)
+    assert first.actions.shape == (0, 2) and frames[1].actions.shape == (3, 2)
+    assert all(f.poses.shape == (3, 3) and f.lidar.shape == (3, 16) for f in frames)
+    assert np.all(np.abs(np.stack([f.actions for f in frames[1:]])) <= 1.0)
+    assert last.done.all() and len(frames) - 1 <= 40 and rc.closed.episodes == 3
+    # success means the last pose is within the goal radius (0.3 m) of the goal
+    dist = np.linalg.norm(last.poses[:, :2] - first.goals, axis=1)
+    np.testing.assert_array_equal(last.success, dist <= 0.3 + 1e-5)
+    # poses stay inside the room, off the walls' cells
+    g, cell = 8, 1.0
+    for f in frames:
+        rc_ = np.floor(f.poses[:, 1::-1] / cell).astype(int)
+        assert not first.walls[np.arange(3), rc_[:, 0], rc_[:, 1]].any()
