@@ -266,7 +266,7 @@ def test_rollout__policy_mode_streams_a_trained_jobs_episodes(server):
     dist = np.linalg.norm(last.poses[:, :2] - first.goals, axis=1)
     np.testing.assert_array_equal(last.success, dist <= 0.3 + 1e-5)
     # poses stay inside the room, off the walls' cells
-    g, cell = 8, 1.0
+    cell = 1.0  # room_size 8 m / grid_size 8
     for f in frames:
         rc_ = np.floor(f.poses[:, 1::-1] / cell).astype(int)
         assert not first.walls[np.arange(3), rc_[:, 0], rc_[:, 1]].any()
