@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import sys
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated
 
@@ -637,14 +638,21 @@ def serve(
             help="API processes (each with its own in-process workers unless --no-worker).",
         ),
     ] = 1,
+    grpc_port: Annotated[
+        int | None, typer.Option(help="gRPC Rollout port (QUICKNAV_GRPC_PORT, default 50051).")
+    ] = None,
+    no_grpc: Annotated[
+        bool, typer.Option("--no-grpc", help="Do not start the gRPC Rollout server.")
+    ] = False,
 ) -> None:
-    """Start the HTTP API (and, by default, an in-process worker on the embedded store)."""
+    """Start the HTTP API, the gRPC Rollout server and, by default, an in-process worker."""
     import uvicorn
 
     from service.api.app import create_app
 
     settings = _service_settings(host=host, port=port, max_concurrent_jobs=workers,
-                                 embedded_worker=False if no_worker else None)  # fmt: skip
+                                 embedded_worker=False if no_worker else None,
+                                 grpc_port=grpc_port, grpc_enabled=False if no_grpc else None)  # fmt: skip
     if settings.host not in ("127.0.0.1", "localhost", "::1") and not settings.api_token:
         console.print(f"[yellow]warning:[/] binding {settings.host} without QUICKNAV_API_TOKEN: anyone who can"
                       " reach this port can submit jobs", soft_wrap=True)  # fmt: skip
@@ -656,6 +664,12 @@ def serve(
     console.print(f"QuickNav API on http://{settings.host}:{settings.port} (docs at /docs), store: {store},"
                   f" in-process workers: {settings.max_concurrent_jobs if settings.embedded_worker else 0}",
                   soft_wrap=True)  # fmt: skip
+    rollout = None
+    if settings.grpc_enabled:
+        from service.rollout.server import BackgroundServer
+
+        rollout = BackgroundServer(settings).start()
+        console.print(f"gRPC Rollout on {settings.host}:{rollout.port}", soft_wrap=True)
     if api_workers > 1:
         # several processes: each builds its app from the same QUICKNAV_* settings
         os.environ["QUICKNAV_EMBEDDED_WORKER"] = "false" if not settings.embedded_worker else "true"
@@ -663,6 +677,39 @@ def serve(
                     workers=api_workers, log_level="warning")  # fmt: skip
     else:
         uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="info")
+
+
+@app.command("rollout-server")
+def rollout_server(
+    host: Annotated[
+        str | None, typer.Option(help="Bind address (QUICKNAV_HOST, default 127.0.0.1).")
+    ] = None,
+    port: Annotated[
+        int | None, typer.Option(help="gRPC port (QUICKNAV_GRPC_PORT, default 50051).")
+    ] = None,
+    cpu_devices: Annotated[
+        int | None,
+        typer.Option(
+            help="CPU devices XLA exposes (default: one per core, at most 8); batches"
+            " of at least 256 envs per device are split across them."
+        ),
+    ] = None,
+) -> None:
+    """Only the gRPC Rollout server: remote agents step batches of envs over one stream each."""
+    expose_cpu_devices(cpu_devices or min(os.cpu_count() or 1, 8))
+    enable_compilation_cache()
+    from service.rollout.server import serve_forever
+
+    settings = _service_settings(host=host, grpc_port=port)
+    if settings.host not in ("127.0.0.1", "localhost", "::1") and not settings.api_token:
+        console.print(f"[yellow]warning:[/] binding {settings.host} without QUICKNAV_API_TOKEN",
+                      soft_wrap=True)  # fmt: skip
+    try:
+        serve_forever(settings)
+    except OSError as e:
+        fail(str(e))
+    except KeyboardInterrupt:
+        pass
 
 
 @app.command("worker")
@@ -705,6 +752,306 @@ def presets() -> None:
 
     for name, p in PRESETS.items():
         console.print(f"[bold]{name}[/]: {p['description']}")
+
+
+# --------------------------------------------------------------------------- jobs on a service
+jobs_app = typer.Typer(
+    help="Jobs on a QuickNav service (quicknav serve): submit, list, follow, cancel, download.",
+    no_args_is_help=True,
+)
+app.add_typer(jobs_app, name="jobs")
+
+JobSetOpt = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--set",
+        help="train/sweep: a config field (--set env.grid_size=8 --set total_steps=200000);"
+        " sweep with a built-in space: trials, parallel or total_steps; eval --policy: an env field.",
+    ),
+]
+
+
+@jobs_app.callback()
+def jobs_main(
+    ctx: typer.Context,
+    url: Annotated[
+        str, typer.Option(envvar="QUICKNAV_URL", help="The service's base URL.")
+    ] = "http://127.0.0.1:8000",
+    token: Annotated[
+        str | None,
+        typer.Option(envvar="QUICKNAV_API_TOKEN", help="Bearer token, if the service wants one."),
+    ] = None,
+) -> None:
+    """Talk to a running QuickNav service over HTTP."""
+    ctx.obj = {"url": url, "token": token}
+
+
+@contextmanager
+def service_client(ctx: typer.Context):
+    """A QuickNavClient for --url/--token; a failed request prints the server's message, exits 1."""
+    from quicknav_client import QuickNavClient, QuickNavError
+
+    try:
+        with QuickNavClient(ctx.obj["url"], token=ctx.obj["token"]) as client:
+            yield client
+    except QuickNavError as e:
+        fail(str(e), code=1)
+
+
+def parse_sets(items: list[str] | None) -> dict:
+    """--set key=value items as a dict; values are JSON where they parse, else strings."""
+    out = {}
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            fail(f"--set {item!r}: expected key=value, e.g. env.grid_size=8")
+        try:
+            out[key.strip()] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key.strip()] = value
+    return out
+
+
+def load_json_file(path: Path) -> dict:
+    """A JSON object from a file; exits with a clear message if missing or malformed."""
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        fail(f"--config {path}: no such file")
+    except json.JSONDecodeError as e:
+        fail(f"--config {path}: not valid JSON ({e})")
+    if not isinstance(data, dict):
+        fail(f"--config {path}: expected a JSON object")
+    return data
+
+
+def metrics_summary(metrics: dict) -> str:
+    """The few numbers worth a glance: success, return, throughput, a sweep's best value."""
+    from quicknav_client.rest import metrics_summary as summary
+
+    return summary(metrics, sep="  ")
+
+
+def _when(t: float | None) -> str:
+    import time
+
+    return "" if t is None else time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(t))
+
+
+def follow_job(job) -> None:
+    """Show a progress bar until the job finishes; exit 0 if it succeeded, 1 otherwise."""
+    from rich.progress import (
+        BarColumn,
+        Progress,
+        TaskProgressColumn,
+        TextColumn,
+        TimeElapsedColumn,
+    )
+
+    name = f"{job.kind} {job.id[:8]}"
+    cols = (TextColumn("{task.description}"), BarColumn(), TaskProgressColumn(),
+            TimeElapsedColumn(), TextColumn("{task.fields[info]}"))  # fmt: skip
+    with Progress(*cols, console=console) as progress:
+        task = progress.add_task(f"{name} {job.status}", total=1.0, completed=job.progress,
+                                 info=metrics_summary(job.metrics))  # fmt: skip
+
+        def on_event(event: dict) -> None:
+            update = {}
+            if isinstance(event.get("status"), str):
+                update["description"] = f"{name} {event['status']}"
+            if isinstance(event.get("progress"), int | float):
+                update["completed"] = event["progress"]
+            info = metrics_summary(event.get("metrics") or {})
+            if info:
+                update["info"] = info
+            progress.update(task, **update)
+
+        job.wait(on_event=on_event)
+    colour = "green" if job.succeeded else "red"
+    console.print(f"job {job.id}: [{colour}]{job.status}[/]", highlight=False)
+    if job.error:
+        console.print(f"error: {job.error}", highlight=False, markup=False, soft_wrap=True)
+    if not job.succeeded:
+        raise typer.Exit(1)
+
+
+@jobs_app.command("submit")
+def jobs_submit(
+    ctx: typer.Context,
+    kind: Annotated[str, typer.Argument(help="train, sweep or eval.")],
+    preset: Annotated[
+        str | None,
+        typer.Option(
+            help="train: a preset (default demo); sweep: a built-in space (ppo, lstm...)."
+        ),
+    ] = None,
+    config: Annotated[
+        Path | None, typer.Option("--config", help="TrainConfig or SweepConfig JSON file.")
+    ] = None,
+    set_: JobSetOpt = None,
+    job: Annotated[
+        str | None, typer.Option("--job", help="eval: the train job whose checkpoint to evaluate.")
+    ] = None,
+    policy: Annotated[
+        str | None, typer.Option(help="eval: a baseline instead of a job, random or oracle.")
+    ] = None,
+    episodes: Annotated[int, typer.Option(min=1, help="eval: episodes.")] = 100,
+    seed: Annotated[int, typer.Option(min=0, help="eval: episode seed.")] = 0,
+    stochastic: Annotated[bool, typer.Option(help="eval: sample actions, not the mean.")] = False,
+    follow: Annotated[
+        bool, typer.Option("--follow", help="Wait with a progress bar until the job finishes.")
+    ] = False,
+) -> None:
+    """Submit a job; prints its id (and with --follow, exits 0 only if it succeeds)."""
+    sets = parse_sets(set_)
+    if kind not in ("train", "sweep", "eval"):
+        fail(f"KIND {kind!r}: allowed values are train, sweep and eval")
+    if kind != "eval" and (job or policy):
+        fail("--job and --policy are for eval jobs")
+    if kind == "eval" and (preset or config):
+        fail("--preset and --config are for train and sweep jobs; eval takes --job or --policy")
+    if preset is not None and config is not None:
+        fail("give either --preset or --config, not both")
+    with service_client(ctx) as client:
+        if kind == "train":
+            if config is not None:
+                submitted = client.train(config=load_json_file(config), overrides=sets)
+            else:
+                submitted = client.train(preset=preset or "demo", overrides=sets)
+        elif kind == "sweep":
+            if config is not None:
+                submitted = client.sweep(load_json_file(config), overrides=sets)
+            elif preset is not None:
+                knobs = ("trials", "parallel", "total_steps")
+                bad = [k for k in sets if k not in knobs]
+                if bad:
+                    fail(f"--set {bad[0]}: with a built-in space only {', '.join(knobs)} can be set;"
+                         " for other fields write a SweepConfig and pass --config")  # fmt: skip
+                submitted = client.sweep(preset, **sets)
+            else:
+                fail("give --preset SPACE (a built-in search space) or --config SWEEP.json")
+        else:
+            if job is not None and sets:
+                fail("--set changes a baseline's env (--policy); a --job keeps its own env")
+            submitted = client.evaluate(job=job, policy=policy, episodes=episodes, seed=seed,
+                                        env=sets, stochastic=stochastic)  # fmt: skip
+        console.print(f"submitted {submitted.kind} job {submitted.id} ({submitted.status})",
+                      highlight=False)  # fmt: skip
+        if follow:
+            follow_job(submitted)
+
+
+@jobs_app.command("list")
+def jobs_list(
+    ctx: typer.Context,
+    status: Annotated[
+        str | None, typer.Option(help="queued, running, succeeded, failed or cancelled.")
+    ] = None,
+    kind: Annotated[str | None, typer.Option(help="train, sweep or eval.")] = None,
+    limit: Annotated[int, typer.Option(min=1, max=500, help="Jobs to show.")] = 20,
+    offset: Annotated[int, typer.Option(min=0, help="Skip this many (newest first).")] = 0,
+) -> None:
+    """List jobs, newest first."""
+    from rich.table import Table
+
+    with service_client(ctx) as client:
+        page = client.jobs(status=status, kind=kind, limit=limit, offset=offset)
+    table = Table(
+        title=f"{len(page)} of {page.count} jobs" + (f" from #{offset + 1}" if offset else "")
+    )
+    table.add_column("id", no_wrap=True)
+    for col in ("kind", "status", "progress", "tries", "created", "latest"):
+        table.add_column(col, justify="right" if col in ("progress", "tries") else "left")
+    for j in page:
+        latest = f"[red]{j.error}[/]" if j.error else metrics_summary(j.metrics)
+        table.add_row(j.id, j.kind, j.status, f"{j.progress:.0%}", str(j.attempts),
+                      _when(j.created_at), latest)  # fmt: skip
+    Console(width=max(console.width, 140)).print(table)
+
+
+@jobs_app.command("show")
+def jobs_show(
+    ctx: typer.Context,
+    job_id: Annotated[str, typer.Argument(help="The job's id.")],
+    as_json: Annotated[bool, typer.Option("--json", help="Print the server's JSON.")] = False,
+) -> None:
+    """Show one job: status, progress, latest metrics, result or error, request."""
+    from rich.table import Table
+
+    with service_client(ctx) as client:
+        j = client.job(job_id)
+    if as_json:
+        print(json.dumps(j.raw, indent=2))
+        return
+    table = Table(title=f"{j.kind} job {j.id}", show_header=False)
+    table.add_column("field", style="bold")
+    table.add_column("value", overflow="fold")
+    rows = [("status", j.status + (" (cancel requested)" if j.cancel_requested and not j.done else "")),
+            ("progress", f"{j.progress:.1%}"), ("attempts", str(j.attempts)),
+            ("created", _when(j.created_at)), ("started", _when(j.started_at)),
+            ("finished", _when(j.finished_at))]  # fmt: skip
+    if j.error:
+        rows.append(("error", j.error))
+    if j.metrics:
+        rows.append(("metrics", json.dumps(j.metrics)))
+    if j.result is not None:
+        rows.append(("result", json.dumps(j.result)))
+    rows.append(("request", json.dumps(j.request)))
+    for key, value in rows:
+        table.add_row(key, value)
+    Console(width=max(console.width, 120)).print(table, markup=False, highlight=False)
+
+
+@jobs_app.command("follow")
+def jobs_follow(
+    ctx: typer.Context, job_id: Annotated[str, typer.Argument(help="The job's id.")]
+) -> None:
+    """Progress bar until the job finishes; exit code 0 if it succeeded, 1 if failed or cancelled."""
+    with service_client(ctx) as client:
+        follow_job(client.job(job_id))
+
+
+@jobs_app.command("cancel")
+def jobs_cancel(
+    ctx: typer.Context, job_id: Annotated[str, typer.Argument(help="The job's id.")]
+) -> None:
+    """Cancel a job: a queued one at once, a running one at its next chunk boundary."""
+    with service_client(ctx) as client:
+        j = client.job(job_id).cancel()
+    note = " (stops at the next chunk boundary)" if j.cancel_requested and not j.done else ""
+    console.print(f"job {j.id}: {j.status}{note}", highlight=False)
+
+
+@jobs_app.command("artifacts")
+def jobs_artifacts(
+    ctx: typer.Context, job_id: Annotated[str, typer.Argument(help="The job's id.")]
+) -> None:
+    """List a job's files (names for `quicknav jobs download`)."""
+    from rich.table import Table
+
+    with service_client(ctx) as client:
+        files = client.job(job_id).artifacts()
+    table = Table(title=f"{len(files)} artifacts of job {job_id}")
+    table.add_column("name", no_wrap=True)
+    table.add_column("bytes", justify="right")
+    for f in files:
+        table.add_row(f["name"], f"{f['bytes']:,}")
+    Console(width=max(console.width, 100)).print(table)
+
+
+@jobs_app.command("download")
+def jobs_download(
+    ctx: typer.Context,
+    job_id: Annotated[str, typer.Argument(help="The job's id.")],
+    name: Annotated[str, typer.Argument(help="Artifact name, e.g. checkpoint/state.msgpack.")],
+    out: Annotated[
+        Path | None, typer.Option("--out", help="File or folder (default: the name's basename).")
+    ] = None,
+) -> None:
+    """Download one of a job's artifacts."""
+    with service_client(ctx) as client:
+        path = client.download(job_id, name, out)
+    console.print(f"wrote {path} ({path.stat().st_size:,} bytes)", highlight=False)
 
 
 def main() -> None:  # pragma: no cover - console entry point

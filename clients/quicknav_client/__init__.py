@@ -1,3 +1,63 @@
 """QuickNav Python SDK: talks to a QuickNav service without importing JAX."""
 
 __version__ = "0.1.0"
+
+# --- REST jobs client (rest.py, errors.py) ------------------------------------------------------
+from quicknav_client.errors import (
+    BadRequest,
+    Conflict,
+    ConnectionFailed,
+    NotFound,
+    PayloadTooLarge,
+    QuickNavError,
+    ServerError,
+    Unauthorized,
+    WaitTimeout,
+)
+from quicknav_client.rest import (
+    AsyncJob,
+    AsyncQuickNavClient,
+    Job,
+    JobList,
+    QuickNavClient,
+)
+
+__all__ = [
+    "AsyncJob",
+    "AsyncQuickNavClient",
+    "BadRequest",
+    "Conflict",
+    "ConnectionFailed",
+    "Job",
+    "JobList",
+    "NotFound",
+    "PayloadTooLarge",
+    "QuickNavClient",
+    "QuickNavError",
+    "ServerError",
+    "Unauthorized",
+    "WaitTimeout",
+    "__version__",
+]
+# --- end of the REST block (other parts: extend with `__all__ += [...]`) ---------------------
+
+# --- gRPC rollouts (rollout.py) and gymnasium adapters (gym.py, needs the `gym` extra) ----------
+from quicknav_client.rollout import RolloutClient, RolloutError, Started, Transition
+
+__all__ += [
+    "RemoteEnv",
+    "RemoteVectorEnv",
+    "RolloutClient",
+    "RolloutError",
+    "Started",
+    "Transition",
+]
+
+
+def __getattr__(name: str):
+    # gymnasium is optional: import the adapters only when asked for
+    if name in ("RemoteEnv", "RemoteVectorEnv"):
+        from quicknav_client import gym
+
+        return getattr(gym, name)
+    raise AttributeError(f"module 'quicknav_client' has no attribute {name!r}")
