@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import math
 from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Annotated, Any
@@ -274,6 +275,17 @@ def get_artifact(job_id: str, name: str, store: StoreDep, settings: SettingsDep)
     return FileResponse(target)
 
 
+def _json_safe(value):
+    """JSON without NaN/Infinity (browsers' JSON.parse rejects them): non-finite floats -> null."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json_safe(v) for v in value]
+    return value
+
+
 @jobs.get("/{job_id}/events")
 async def job_events(job_id: str, request: Request, store: StoreDep,
                      last_event_id: Annotated[str | None, Header(alias="Last-Event-ID")] = None):  # fmt: skip
@@ -290,16 +302,21 @@ async def job_events(job_id: str, request: Request, store: StoreDep,
         while True:
             if await request.is_disconnected():
                 return
-            events = await anyio.to_thread.run_sync(store.events, job_id, after)
+            try:
+                events = await anyio.to_thread.run_sync(store.events, job_id, after)
+                job = None if events else await anyio.to_thread.run_sync(store.get, job_id)
+            except JobNotFound:  # deleted while someone was watching: say so and end cleanly
+                yield f"event: deleted\ndata: {json.dumps({'type': 'deleted', 'job_id': job_id})}\n\n"
+                return
             for seq, ev in events:
                 after = seq
-                yield f"id: {seq}\nevent: {ev.get('type', 'message')}\ndata: {json.dumps(ev)}\n\n"
+                data = json.dumps(_json_safe(ev), allow_nan=False)
+                yield f"id: {seq}\nevent: {ev.get('type', 'message')}\ndata: {data}\n\n"
                 if ev.get("type") in ("succeeded", "failed", "cancelled"):
                     return
             if events:
                 idle = 0.0
                 continue
-            job = await anyio.to_thread.run_sync(store.get, job_id)
             if job.status.finished and not await anyio.to_thread.run_sync(
                 store.events, job_id, after
             ):

@@ -214,3 +214,19 @@ def test_prometheus_metrics_and_presets(live):
     assert 'quicknav_jobs{status="queued"} 1' in text and "quicknav_queue_depth 1" in text
     presets = httpx.get(f"{live.url}/presets").json()
     assert "demo" in presets and "paper-lstm" in presets
+
+
+def test_events__non_finite_metrics_travel_as_null(live):
+    job, _ = live.store.submit("eval", {"policy": "random", "episodes": 1, "seed": 0})
+    live.store.publish(job.id, {"type": "progress", "metrics": {"return": float("nan"), "n": 1}})
+    with httpx.stream("GET", f"{live.url}/jobs/{job.id}/events", timeout=10) as r:
+        lines = []
+        for line in r.iter_lines():
+            lines.append(line)
+            if line.startswith("data:") and "progress" in line:
+                live.store.cancel(job.id)  # a queued job is cancelled at once: the stream ends
+    text = "\n".join(lines)
+    assert "NaN" not in text
+    data = [json.loads(x.removeprefix("data:")) for x in lines if x.startswith("data:")]
+    assert data[0]["metrics"] == {"return": None, "n": 1}
+    assert data[-1]["type"] == "cancelled"
