@@ -234,7 +234,9 @@ def run_episodes(env, params, agent: Agent, cfg: EvalConfig) -> Episodes:
         "theta": np.concatenate([first[0][None], theta], axis=0).swapaxes(0, 1),
         "lidar_ranges": np.concatenate([first[1][None], ranges], axis=0).swapaxes(0, 1),
         "lidar_hits": np.concatenate([first[2][None], hits], axis=0).swapaxes(0, 1),
-        "actions": np.asarray(actions, np.float32).swapaxes(0, 1),  # (G, T, 2): action t -> pose t+1
+        "actions": np.asarray(actions, np.float32).swapaxes(
+            0, 1
+        ),  # (G, T, 2): action t -> pose t+1
     }
     return Episodes(
         success=np.asarray(success), truncated=np.asarray(trunc), steps=np.asarray(steps),

@@ -44,6 +44,44 @@ def step_keys(counter: jax.Array, num_envs: int) -> jax.Array:
     return jnp.stack([jnp.broadcast_to(word, (num_envs,)), i], axis=-1)
 
 
+def batched_step(env, keys, state, action, params, reset_capacity: int | None = None):
+    """``vmap(env.step)`` with auto-reset and final observations, casting the lidar ~once per env.
+
+    ``env.step`` under vmap casts the lidar twice for every env (the pre-reset pose for the final
+    observation, the kept pose for the next one), because a per-env branch becomes a select.
+    At the batch level only the few envs that just ended need a second cast: their fresh
+    states are gathered (up to ``reset_capacity`` of them), cast, and scattered back; a step in
+    which more envs end (e.g. a synchronised truncation) takes the full path. The result equals
+    ``vmap(env.step)`` exactly. Returns (obs, state, reward, info, final_obs).
+    """
+    n = action.shape[0]
+    k = reset_capacity if reset_capacity is not None else max(8, n // 16)
+    moved, reward, info = jax.vmap(env._transition, in_axes=(0, 0, 0, None))(
+        keys, state, action, params
+    )
+    done = info["terminated"] | info["truncated"]
+    moved = jax.vmap(env._with_lidar, in_axes=(0, None))(moved, params)
+    final = jax.vmap(env.get_obs, in_axes=(0, None))(moved, params)
+    fresh = jax.vmap(env._spawn, in_axes=(0, None))(keys, params)
+    cast_all = lambda f: jax.vmap(env._with_lidar, in_axes=(0, None))(f, params)  # noqa: E731
+    if k >= n:
+        fresh = cast_all(fresh)
+    else:
+
+        def cast_ended(f):
+            # padding repeats index 0: its (correct) fresh lidar is written back to itself
+            idx = jnp.nonzero(done, size=k, fill_value=0)[0]
+            part = cast_all(jax.tree.map(lambda x: x[idx], f))
+            return jax.tree.map(lambda full, p: full.at[idx].set(p), f, part)
+
+        fresh = jax.lax.cond(jnp.sum(done) > k, cast_all, cast_ended, fresh)
+    kept = jax.tree.map(
+        lambda a, b: jnp.where(done.reshape(done.shape + (1,) * (a.ndim - 1)), a, b), fresh, moved
+    )
+    obs = jax.vmap(env.get_obs, in_axes=(0, None))(kept, params)
+    return obs, kept, reward, info, final
+
+
 def _compiled(env, num_envs: int, sharding):
     """(reset, step) for this env, batch size and device layout, jit-compiled once and cached."""
     key = (env, num_envs, sharding)
@@ -61,10 +99,7 @@ def _compiled(env, num_envs: int, sharding):
 
     def step(counter, state, action, params):
         keys = step_keys(counter, num_envs)
-        obs, state, reward, done, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
-            keys, state, action, params
-        )
-        final = info["final_obs"] if env.final_obs else obs
+        obs, state, reward, info, final = batched_step(env, keys, state, action, params)
         counter = counter.at[1].add(jnp.uint32(1))
         return (counter, state, obs, reward, info["terminated"], info["truncated"],
                 info["collision"], final)  # fmt: skip

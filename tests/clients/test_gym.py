@@ -10,7 +10,7 @@ from quicknav_client.gym import RemoteEnv, RemoteVectorEnv
 
 from service.rollout.server import BackgroundServer
 from service.settings import Settings
-from tests.service.test_rollout import CONFIG, _reference
+from tests.service.test_rollout import CONFIG, _reference, close
 
 N = 4
 
@@ -51,19 +51,19 @@ def test_remote_vector_env__matches_the_local_jax_env(target):
         assert env.observation_space.shape == (N, ref[0].shape[1])
         assert env.action_space.shape == (N, 2)
         obs, _ = env.reset()
-        np.testing.assert_array_equal(obs, ref[0])
+        close(obs, ref[0])
         finals = 0
         for a, (r_obs, r_rew, r_term, r_trunc, r_final) in zip(actions, ref[1:], strict=True):
             obs, rew, term, trunc, info = env.step(a)
-            np.testing.assert_array_equal(obs, r_obs)
-            np.testing.assert_array_equal(rew, r_rew)
+            close(obs, r_obs)
+            close(rew, r_rew)
             np.testing.assert_array_equal(term, r_term)
             np.testing.assert_array_equal(trunc, r_trunc)
             done = r_term | r_trunc
             if done.any():
                 np.testing.assert_array_equal(info["_final_obs"], done)
                 for i in np.flatnonzero(done):
-                    np.testing.assert_array_equal(info["final_obs"][i], r_final[i])
+                    close(info["final_obs"][i], r_final[i])
                 finals += int(done.sum())
             else:
                 assert "final_obs" not in info

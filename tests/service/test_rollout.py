@@ -40,6 +40,11 @@ def strict_server(tmp_path_factory):
     srv.stop()
 
 
+def close(actual, desired):
+    """Equal up to float32 rounding: the served step fuses differently from vmap(env.step)."""
+    np.testing.assert_allclose(actual, desired, rtol=1e-4, atol=1e-5)
+
+
 def _target(srv) -> str:
     return f"127.0.0.1:{srv.port}"
 
@@ -79,17 +84,17 @@ def test_rollout__full_session_matches_the_jax_env(server):
         assert started.action_space.shape == (2,)
         assert np.all(started.action_space.low == -1) and np.all(started.action_space.high == 1)
         assert started.env_config["grid_size"] == 8
-        np.testing.assert_array_equal(started.observations, ref[0])
+        close(started.observations, ref[0])
         ended = 0
         for a, (obs, reward, term, trunc, final) in zip(actions, ref[1:], strict=True):
             t = rc.step(a)
-            np.testing.assert_array_equal(t.observations, obs)
-            np.testing.assert_array_equal(t.rewards, reward)
+            close(t.observations, obs)
+            close(t.rewards, reward)
             np.testing.assert_array_equal(t.terminated, term)
             np.testing.assert_array_equal(t.truncated, trunc)
             # auto-reset: exactly the envs that ended carry their final observation
             np.testing.assert_array_equal(t.done_indices, np.flatnonzero(term | trunc))
-            np.testing.assert_array_equal(t.final_observations, final[term | trunc])
+            close(t.final_observations, final[term | trunc])
             assert np.all(started.observation_space.low <= t.observations)
             assert np.all(t.observations <= started.observation_space.high)
             ended += t.done_indices.size
@@ -238,7 +243,7 @@ def test_rollout__concurrent_streams_are_isolated(server):
     for seed, actions in plans.items():
         ref = _reference(seed, N, actions)
         alone = np.stack([ref[0]] + [r[0] for r in ref[1:]])
-        np.testing.assert_array_equal(together[seed], alone)
+        close(together[seed], alone)
 
 
 def test_rollout__policy_mode_streams_a_trained_jobs_episodes(server):

@@ -1,0 +1,59 @@
+"""BatchedEnv's step (one lidar cast per env plus the few that reset) equals vmap(env.step)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from quicknav_core.config import EnvConfig
+from quicknav_core.env.batch import BatchedEnv, batched_step
+
+N = 16
+
+
+@pytest.mark.parametrize("capacity", [2, N])
+def test_batched_step__equals_vmapped_env_step(capacity):
+    # max_steps=9 makes every env that has not reached its goal truncate at once (the full path)
+    # while random driving ends some episodes early at different steps (the gathered path)
+    env, params = EnvConfig(grid_size=6, room_size=3.0, train_rooms=8, max_steps=9, goal_radius=0.9,
+                            goal_candidates=1,
+                            lidar_beams=8).build("train")  # fmt: skip
+    keys = jax.random.split(jax.random.PRNGKey(0), N)
+    _, state = jax.vmap(env.reset, in_axes=(0, None))(keys, params)
+    ref_state = state
+    fast = jax.jit(lambda k, s, a: batched_step(env, k, s, a, params, reset_capacity=capacity))
+    slow = jax.jit(jax.vmap(env.step, in_axes=(0, 0, 0, None)))
+    ended = []
+    for t in range(40):
+        step_keys = jax.random.split(jax.random.PRNGKey(t + 1), N)
+        action = jax.random.uniform(jax.random.PRNGKey(100 + t), (N, 2), minval=-1, maxval=1)
+        obs, state, reward, info, final = fast(step_keys, state, action)
+        r_obs, ref_state, r_reward, r_done, r_info = slow(step_keys, ref_state, action, params)
+        done = np.asarray(info["terminated"] | info["truncated"])
+        np.testing.assert_array_equal(done, np.asarray(r_done))
+        np.testing.assert_allclose(obs, r_obs, rtol=1e-4, atol=1e-5)
+        np.testing.assert_allclose(reward, r_reward, rtol=1e-4, atol=1e-5)
+        np.testing.assert_allclose(final, r_info["final_obs"], rtol=1e-4, atol=1e-5)
+        for a, b in zip(jax.tree.leaves(state), jax.tree.leaves(ref_state), strict=True):
+            np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5)
+        ended.append(int(done.sum()))
+    # both paths ran: steps with a few ended envs and steps with more than the capacity
+    assert any(0 < e <= 2 for e in ended) and any(e > 5 for e in ended), ended
+
+
+def test_batched_env__reset_seed_is_reproducible_and_final_obs_only_for_ended_envs():
+    cfg = EnvConfig(grid_size=6, room_size=3.0, train_rooms=8, max_steps=5, lidar_beams=8)
+    env = BatchedEnv(cfg, 4, seed=3)
+    first = env.reset()
+    assert first.shape == (4, cfg.obs_dim) and first.dtype == np.float32
+    for _ in range(4):
+        r = env.step(np.zeros((4, 2), np.float32))
+        assert r.done_indices.size == 0 and r.final_obs.shape == (0, cfg.obs_dim)
+    r = env.step(np.zeros((4, 2), np.float32))
+    np.testing.assert_array_equal(r.done_indices, np.arange(4))
+    assert r.truncated.all() and r.final_obs.shape == (4, cfg.obs_dim)
+    np.testing.assert_array_equal(env.reset(seed=3), first)
+    assert not np.array_equal(env.reset(seed=4), first)
+    assert jnp.asarray(r.obs).shape == (4, cfg.obs_dim)
