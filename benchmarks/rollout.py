@@ -153,12 +153,12 @@ def main() -> None:
             "jax": jax.__version__,
             "grpcio": grpc.__version__,
             "backend": jax.default_backend(),
-        },  # fmt: skip
+        },
         "config": {
             "env": CONFIG or "EnvConfig() defaults (grid 16, 16 beams)",
             "seconds": args.seconds,
             "server_cpu_devices": args.cpu_devices or "default",
-        },  # fmt: skip
+        },
         "streams": streams,
         "local": local,
         "targets": {"env_steps_per_s_4096": 1_000_000, "rtt_p50_ms_1_env": 1.0},
