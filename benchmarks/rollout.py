@@ -106,7 +106,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--envs", type=int, nargs="+", default=[1, 64, 1024, 4096])
     ap.add_argument("--seconds", type=float, default=3.0, help="measuring time per batch size")
-    ap.add_argument("--cpu-devices", type=int, default=None, help="passed to rollout-server")
+    ap.add_argument(
+        "--cpu-devices", type=int, default=None, help="passed to rollout-server (default 1)"
+    )
     ap.add_argument("--no-local", action="store_true", help="skip the in-process comparison")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/rollout.json"))
     args = ap.parse_args()

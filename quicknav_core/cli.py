@@ -688,15 +688,19 @@ def rollout_server(
         int | None, typer.Option(help="gRPC port (QUICKNAV_GRPC_PORT, default 50051).")
     ] = None,
     cpu_devices: Annotated[
-        int | None,
+        int,
         typer.Option(
-            help="CPU devices XLA exposes (default: one per core, at most 8); batches"
-            " of at least 256 envs per device are split across them."
+            min=1,
+            max=64,
+            help="CPU devices XLA exposes; batches of at least 256 envs per device are split"
+            " across them (on 2 cores one device was faster: gRPC needs the other core)."
+            " Several GPUs are always used.",
         ),
-    ] = None,
+    ] = 1,
 ) -> None:
     """Only the gRPC Rollout server: remote agents step batches of envs over one stream each."""
-    expose_cpu_devices(cpu_devices or min(os.cpu_count() or 1, 8))
+    if cpu_devices > 1:
+        expose_cpu_devices(cpu_devices)
     enable_compilation_cache()
     from service.rollout.server import serve_forever
 

@@ -57,3 +57,44 @@ def test_batched_env__reset_seed_is_reproducible_and_final_obs_only_for_ended_en
     np.testing.assert_array_equal(env.reset(seed=3), first)
     assert not np.array_equal(env.reset(seed=4), first)
     assert jnp.asarray(r.obs).shape == (4, cfg.obs_dim)
+
+
+_SHARDED = """
+import jax, jax.numpy as jnp, numpy as np
+from quicknav_core.config import EnvConfig
+from quicknav_core.env.batch import BatchedEnv, step_keys
+assert jax.local_device_count() == 2
+cfg = EnvConfig(grid_size=6, room_size=3.0, train_rooms=8, max_steps=7, lidar_beams=4)
+n = 512
+be = BatchedEnv(cfg, n, seed=1)
+assert be._sharding is not None  # the batch is split over the two devices
+obs0 = be.reset()
+env, params = be.env, be.params
+rng = jax.random.PRNGKey(1)
+rng, sub, word = jax.random.split(rng, 3)
+counter = jnp.stack([jax.random.bits(word, (), jnp.uint32), jnp.uint32(0)])
+ref_obs, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(sub, n), params)
+np.testing.assert_allclose(obs0, ref_obs, rtol=1e-4, atol=1e-5)
+step = jax.jit(jax.vmap(env.step, in_axes=(0, 0, 0, None)))
+for t in range(12):
+    a = np.random.default_rng(t).uniform(-1, 1, (n, 2)).astype(np.float32)
+    r = be.step(a)
+    obs, state, reward, done, info = step(step_keys(counter, n), state, jnp.asarray(a), params)
+    counter = counter.at[1].add(1)
+    np.testing.assert_allclose(r.obs, obs, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(r.reward, reward, rtol=1e-4, atol=1e-5)
+    np.testing.assert_array_equal(r.done_indices, np.flatnonzero(np.asarray(done)))
+    np.testing.assert_allclose(r.final_obs, np.asarray(info["final_obs"])[r.done_indices], rtol=1e-4, atol=1e-5)
+print("ok")
+"""
+
+
+def test_batched_env__sharded_over_two_cpu_devices_equals_one_device():
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    out = subprocess.run([sys.executable, "-c", _SHARDED], env=env, capture_output=True, text=True,
+                         timeout=300)  # fmt: skip
+    assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr[-3000:]
