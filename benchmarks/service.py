@@ -2,7 +2,10 @@
 
 1. Job submissions accepted per second with concurrent HTTP clients (target >= 1,000/s), and the p99
    latency of GET /jobs/{id} under that load (target < 20 ms). The API runs as `quicknav serve
-   --no-worker` in its own process; the clients share the same 2 cores.
+   --no-worker --api-workers 2` (QUICKNAV_BENCH_API_WORKERS); the load comes from `wrk` (C, one
+   thread: 16 connections POSTing, 1 connection GETting) when it is installed (`apt-get install
+   wrk`), else from an httpx client in this process, which needs a core of its own. Clients and
+   server share the same 2 cores. Every accepted submission is checked to exist in Redis.
 2. Progress-event latency, worker -> SSE client: a worker publishes timestamped events into the
    store, a client follows /jobs/{id}/events (target p50 < 50 ms).
 3. Time to first progress of a repeated train job on a warm worker vs a cold one (target >= 5x).
@@ -14,6 +17,7 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import shutil
 import statistics
 import subprocess
 import sys
@@ -76,6 +80,46 @@ async def submissions(n_requests: int, concurrency: int) -> dict:
         "submissions_per_s": round(len(ids) / wall, 1),
         "get_p50_ms": round(1000 * pct(lat_get, 50), 2), "get_p99_ms": round(1000 * pct(lat_get, 99), 2),
         "gets_measured": len(lat_get),
+    }  # fmt: skip
+
+
+def _wrk_latency_ms(text: str, q: str) -> float:
+    """A percentile from wrk's --latency table, in ms."""
+    for line in text.splitlines():
+        parts = line.split()
+        if len(parts) == 2 and parts[0] == q:
+            v = parts[1]
+            for unit, f in (("us", 1e-3), ("ms", 1.0), ("s", 1e3)):
+                if v.endswith(unit):
+                    return round(float(v[: -len(unit)]) * f, 3)
+    raise ValueError(f"no {q} line in wrk output:\n{text}")
+
+
+def _wrk_rate(text: str) -> float:
+    return float(next(x for x in text.splitlines() if x.startswith("Requests/sec:")).split()[1])
+
+
+def submissions_wrk(seconds: int, concurrency: int) -> dict:
+    """wrk POSTs eval jobs on `concurrency` connections while a second wrk times GET /jobs/{id}."""
+    first = httpx.post(f"{URL}/jobs/eval", json={"policy": "random", "episodes": 1}).json()["id"]
+    lua = Path(tempfile.mkdtemp()) / "post.lua"
+    lua.write_text('wrk.method = "POST"\nwrk.body = \'{"policy": "random", "episodes": 1}\'\n'
+                   'wrk.headers["Content-Type"] = "application/json"\n')  # fmt: skip
+    post = subprocess.Popen(["wrk", "-t1", f"-c{concurrency}", f"-d{seconds}s", "-s", str(lua),
+                             f"{URL}/jobs/eval"], stdout=subprocess.PIPE, text=True)  # fmt: skip
+    time.sleep(0.5)
+    get = subprocess.run(["wrk", "-t1", "-c1", f"-d{seconds - 1}s", "--latency", f"{URL}/jobs/{first}"],
+                         capture_output=True, text=True, check=True)  # fmt: skip
+    post_out = post.communicate()[0]
+    if "Non-2xx" in post_out or "Non-2xx" in get.stdout:
+        raise RuntimeError(f"wrk saw error responses:\n{post_out}\n{get.stdout}")
+    return {
+        "load_generator": f"wrk, 1 thread, {concurrency} POST connections + 1 GET connection",
+        "concurrency": concurrency, "seconds": seconds,
+        "submissions_per_s": round(_wrk_rate(post_out), 1),
+        "get_per_s": round(_wrk_rate(get.stdout), 1),
+        "get_p50_ms": _wrk_latency_ms(get.stdout, "50%"),
+        "get_p99_ms": _wrk_latency_ms(get.stdout, "99%"),
     }  # fmt: skip
 
 
@@ -149,8 +193,9 @@ def main() -> None:
     tmp = Path(tempfile.mkdtemp(prefix="quicknav-bench-"))
     env = {**os.environ, "QUICKNAV_REDIS_URL": REDIS_URL, "QUICKNAV_DATA_DIR": str(tmp / "api"),
            "QUICKNAV_PORT": str(PORT)}  # fmt: skip
-    api_workers = os.environ.get("QUICKNAV_BENCH_API_WORKERS", "1")
-    server = subprocess.Popen([sys.executable, "-m", "quicknav_core.cli", "serve", "--no-worker", "--api-workers", api_workers], env=env,
+    api_workers = os.environ.get("QUICKNAV_BENCH_API_WORKERS", "2")
+    server = subprocess.Popen([sys.executable, "-m", "quicknav_core.cli", "serve", "--no-worker", "--no-grpc",
+                               "--api-workers", api_workers], env=env,
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
     results: dict = {}
     try:
@@ -162,7 +207,18 @@ def main() -> None:
             except httpx.HTTPError:
                 time.sleep(0.2)
         asyncio.run(submissions(200, 16))  # warm-up
-        results["submissions"] = asyncio.run(submissions(3000, 32))
+        if shutil.which("wrk"):
+            results["submissions"] = submissions_wrk(10, 16)
+        else:
+            print("wrk not found: the load comes from httpx in this process", flush=True)
+            results["submissions"] = asyncio.run(submissions(3000, 32))
+            results["submissions"]["load_generator"] = (
+                "httpx.AsyncClient, 32 submitters + 2 getters"
+            )
+        results["submissions"]["api_workers"] = int(api_workers)
+        # every accepted submission is a job record and a queue entry
+        stored = r.zcard("quicknav:jobs")
+        results["submissions"]["jobs_in_redis"] = stored
         print("submissions:", results["submissions"], flush=True)
         results["sse_latency"] = sse_latency(RedisJobStore(REDIS_URL))
         print("sse latency:", results["sse_latency"], flush=True)

@@ -275,6 +275,38 @@ def get_artifact(job_id: str, name: str, store: StoreDep, settings: SettingsDep)
     return FileResponse(target)
 
 
+class BodyLimit:
+    """Refuse request bodies over ``max_bytes`` with 413: by Content-Length up front, and by
+    counting for chunked bodies. Pure ASGI (a BaseHTTPMiddleware costs a task per request)."""
+
+    def __init__(self, app, max_bytes: int):
+        self.app = app
+        self.max_bytes = max_bytes
+
+    def _too_large(self, size: int | str) -> str:
+        return f"request body of {size} bytes exceeds the limit of {self.max_bytes} bytes"
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        for name, value in scope["headers"]:
+            if name == b"content-length" and value.isdigit() and int(value) > self.max_bytes:
+                response = JSONResponse({"detail": self._too_large(value.decode())}, status_code=413)
+                return await response(scope, receive, send)
+        received = 0
+
+        async def counted():
+            nonlocal received
+            message = await receive()
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > self.max_bytes:
+                    raise HTTPException(413, self._too_large(f"more than {received}"))
+            return message
+
+        return await self.app(scope, counted, send)
+
+
 def _json_safe(value):
     """JSON without NaN/Infinity (browsers' JSON.parse rejects them): non-finite floats -> null."""
     if isinstance(value, float):
@@ -406,13 +438,7 @@ def create_app(
     app.state.store = store
     app.state.workers = []
 
-    @app.middleware("http")
-    async def limit_body(request: Request, call_next):
-        length = request.headers.get("content-length")
-        if length is not None and length.isdigit() and int(length) > settings.max_body_bytes:
-            return JSONResponse({"detail": f"request body of {length} bytes exceeds the limit of "
-                                           f"{settings.max_body_bytes} bytes"}, status_code=413)  # fmt: skip
-        return await call_next(request)
+    app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
 
     @app.exception_handler(RequestValidationError)
     async def validation_handler(request: Request, exc: RequestValidationError):

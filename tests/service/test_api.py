@@ -181,6 +181,11 @@ def test_bad_input_is_refused_with_named_fields(live):
     big = {"preset": "demo", "overrides": {"note": "x" * 2_000_000}}
     r = httpx.post(f"{live.url}/jobs/train", json=big)
     assert r.status_code == 413 and "exceeds the limit" in r.text
+    # a chunked body (no Content-Length) is counted as it arrives
+    chunks = (json.dumps(big)[i : i + 65536].encode() for i in range(0, 2_000_100, 65536))
+    r = httpx.post(f"{live.url}/jobs/train", content=chunks,
+                   headers={"Content-Type": "application/json"})  # fmt: skip
+    assert r.status_code == 413 and "exceeds the limit" in r.text
 
 
 def test_artifact_names_cannot_escape_the_job_folder(live):
