@@ -291,7 +291,9 @@ class BodyLimit:
             return await self.app(scope, receive, send)
         for name, value in scope["headers"]:
             if name == b"content-length" and value.isdigit() and int(value) > self.max_bytes:
-                response = JSONResponse({"detail": self._too_large(value.decode())}, status_code=413)
+                response = JSONResponse(
+                    {"detail": self._too_large(value.decode())}, status_code=413
+                )
                 return await response(scope, receive, send)
         received = 0
 

@@ -41,6 +41,8 @@ async def start_server(
 def serve_forever(settings: Settings, host: str | None = None, port: int | None = None) -> None:
     """Run the Rollout server in this thread until interrupted."""
 
+    import quicknav_core.env.batch  # noqa: F401  (import JAX now, not on the first Start)
+
     async def main():
         server, bound, _ = await start_server(settings, host, port)
         print(f"gRPC Rollout server listening on {host or settings.host}:{bound}", flush=True)
