@@ -12,7 +12,10 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 class Settings(BaseSettings):
     """Validated at start; a bad value stops the service with a message naming the variable."""
 
-    model_config = SettingsConfigDict(env_prefix="QUICKNAV_", env_file=".env", extra="ignore")
+    # an empty variable (QUICKNAV_API_TOKEN=) means unset, as compose and shells often pass them
+    model_config = SettingsConfigDict(
+        env_prefix="QUICKNAV_", env_file=".env", extra="ignore", env_ignore_empty=True
+    )
 
     data_dir: Path = Field(Path("quicknav-data"), description="SQLite database and artifacts")
     redis_url: str | None = Field(

@@ -163,7 +163,7 @@ async def submit_sweep(body: SweepJobCreate, store: StoreDep, settings: Settings
         )
     if cfg.trials > settings.max_sweep_trials:
         raise _limit_error(
-            ["trials"],
+            ["config", "trials"] if body.config is not None else ["trials"],
             f"trials={cfg.trials} exceeds this server's limit max_sweep_trials={settings.max_sweep_trials}",
         )
     check_train_limits(cfg.base, settings, ["config", "base"])
@@ -183,6 +183,10 @@ async def submit_eval(body: EvalJobCreate, store: StoreDep, settings: SettingsDe
             f"episodes={body.episodes} exceeds this server's limit max_eval_episodes={settings.max_eval_episodes}",
         )
     if body.job_id is not None:
+        if body.env:
+            raise HTTPException(422, [{"loc": ["body", "env"], "type": "value_error",
+                                       "msg": "env applies to baseline policies only: a trained job is"
+                                              " evaluated in its own env config (leave env out)"}])  # fmt: skip
         src = _get(store, body.job_id)
         if src.kind != JobKind.train:
             raise HTTPException(422, [{"loc": ["body", "job_id"], "type": "value_error",

@@ -157,6 +157,8 @@ def test_idempotency_key(live):
 
 
 def test_bad_input_is_refused_with_named_fields(live):
+    r = httpx.post(f"{live.url}/jobs/eval", json={"job_id": "x", "env": {"grid_size": 8}})
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "env"]
     r = httpx.post(f"{live.url}/jobs/train", json={"preset": "demo", "overrides": {"num_envs": 0}})
     assert r.status_code == 422 and "num_envs" in r.text
     r = httpx.post(
@@ -235,3 +237,16 @@ def test_events__non_finite_metrics_travel_as_null(live):
     data = [json.loads(x.removeprefix("data:")) for x in lines if x.startswith("data:")]
     assert data[0]["metrics"] == {"return": None, "n": 1}
     assert data[-1]["type"] == "cancelled"
+
+
+def test_sweep_trial_limit_names_the_field_the_client_sent(live):
+    limit = live.settings.max_sweep_trials
+    r = httpx.post(f"{live.url}/jobs/sweep", json={"space": "ppo", "trials": limit + 1})
+    assert r.status_code == 422
+    assert r.json()["detail"][0]["loc"] == ["body", "trials"] and "max_sweep_trials" in r.text
+    from quicknav_core.sweep import builtin_sweep
+
+    cfg = builtin_sweep("ppo", trials=limit + 1, parallel=1, study_name="x").model_dump(mode="json")
+    r = httpx.post(f"{live.url}/jobs/sweep", json={"config": cfg})
+    assert r.status_code == 422
+    assert r.json()["detail"][0]["loc"] == ["body", "config", "trials"]
