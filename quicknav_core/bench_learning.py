@@ -200,6 +200,16 @@ def run_learning_bench(out_dir: Path, runs_dir: Path, rows: list[str] | None, se
     runs_dir.mkdir(parents=True, exist_ok=True)
     say("baselines (oracle, random)")
     base = baselines(runs_dir)
+    # Seeds finished on another machine or in an earlier checkout survive in the committed
+    # report.json even when their run folders (git-ignored) are gone: keep them.
+    kept: dict[tuple[str, int], dict[str, Any]] = {}
+    previous = out_dir / "report.json"
+    if previous.exists():
+        for preset, row_data in json.loads(previous.read_text()).get("rows", {}).items():
+            for run in row_data.get("runs", []):
+                seed = (run.get("training") or {}).get("seed")
+                if seed is not None:
+                    kept[(preset, int(seed))] = run
     results: dict[str, list[dict[str, Any]]] = {}
     for row in ROWS:
         done = []
@@ -207,6 +217,8 @@ def run_learning_bench(out_dir: Path, runs_dir: Path, rows: list[str] | None, se
             path = runs_dir / f"{_slug(row)}-s{seed}" / "eval" / "eval.json"
             if path.exists():
                 done.append(json.loads(path.read_text()))
+            elif (row.preset, seed) in kept:
+                done.append(kept[(row.preset, seed)])
             elif not rows or row.preset in rows:
                 say(f"{row.name}, seed {seed}")
                 done.append(run_one(row, seed, runs_dir, scale, say))

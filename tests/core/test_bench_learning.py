@@ -1,0 +1,41 @@
+"""The learning benchmark keeps seeds recorded in a committed report when their run folders are gone."""
+
+from __future__ import annotations
+
+import json
+
+from quicknav_core.bench_learning import run_learning_bench
+
+
+def _metrics(success: float) -> dict:
+    return {
+        "episodes": 100, "success_rate": success, "success_ci95": [0.0, 1.0],
+        "steps_to_goal_successes": {"mean": 60.0, "std": 5.0},
+        "steps_to_goal_failures_as_limit": {"mean": 70.0, "std": 9.0},
+        "return": {"mean": 90.0, "std": 3.0}, "collisions_per_episode": 0.5, "timeout_rate": 0.0,
+        "spl": 0.9, "path_length_successes": {"mean": 5.0, "std": 1.0},
+        "reference_length": {"mean": 5.0, "std": 1.0}, "steps_lower_bound": {"mean": 50.0, "std": 1.0},
+    }  # fmt: skip
+
+
+def test_bench_learning__keeps_committed_seeds_without_their_run_folders(tmp_path):
+    out, runs = tmp_path / "results", tmp_path / "runs"
+    for name in ("oracle-table1", "random-table1", "oracle-table2", "random-table2"):
+        policy, table = name.split("-")
+        d = runs / f"baseline-{policy}-{table}"
+        d.mkdir(parents=True)
+        (d / "eval.json").write_text(
+            json.dumps({"metrics": _metrics(1.0 if policy == "oracle" else 0.0)})
+        )
+    out.mkdir()
+    kept = [{"metrics": _metrics(0.98 + 0.01 * s), "training": {"seed": s, "minutes": 4.0,
+             "env_steps": 20_000_000, "stopped_by_time_cap": False}} for s in range(3)]  # fmt: skip
+    (out / "report.json").write_text(json.dumps({"rows": {"paper-ppo": {"runs": kept}}}))
+    markdown, data = run_learning_bench(out, runs, rows=["none-selected"], seeds=3)
+    runs_ppo = data["rows"]["paper-ppo"]["runs"]
+    assert [r["training"]["seed"] for r in runs_ppo] == [0, 1, 2]
+    assert "| PPO (MLP 2x128) | 3/3 |" in markdown
+    target = next(t for t in data["targets"] if "PPO" in t["target"])
+    assert target["met"]
+    # nothing was trained: no run folder appeared
+    assert sorted(p.name for p in runs.iterdir() if not p.name.startswith("baseline")) == []
