@@ -158,8 +158,12 @@ class RolloutClient:
         split: str = "train",
         policy_job: str | None = None,
         stochastic: bool = False,
-    ) -> Started:
-        """Start ``num_envs`` envs with an EnvConfig (a dict of fields or its JSON)."""
+    ) -> Started | None:
+        """Start ``num_envs`` envs with an EnvConfig (a dict of fields or its JSON).
+
+        With ``policy_job`` the server streams that job's episodes instead: returns None, read
+        them with ``policy_frames()``.
+        """
         if split not in SPLITS:
             raise ValueError(f"split={split!r}: allowed values are 'train' and 'test'")
         start = pb.Start(num_envs=num_envs, seed=seed, split=SPLITS[split])

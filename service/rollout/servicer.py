@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import asyncio
 import hmac
-import itertools
 import logging
 import uuid
 from concurrent.futures import ThreadPoolExecutor
@@ -110,7 +109,6 @@ class RolloutServicer(pb_grpc.RolloutServiceServicer):
             max_workers=min(32, settings.rollout_max_sessions + 2), thread_name_prefix="rollout"
         )
         self.active_sessions = 0
-        self.total_sessions = itertools.count(1)
         self._handlers = {
             "start": self._start,
             "step": self._step,
