@@ -36,9 +36,27 @@ ROWS = (
     Row("PPO (MLP 2x128)", 1, "paper-ppo", 20_000_000, 30, "reward 96.87 ± 8.50"),
     Row("SAC (MLP 2x128)", 1, "paper-sac", 4_000_000, 30, "reward 73.52 ± 51.59"),
     Row("TD3 (MLP 2x128)", 1, "paper-td3", 8_000_000, 30, "reward 85.99 ± 36.22"),
-    Row("PPO + MLP with memory", 2, "paper-mlp", 200_000_000, 60, "steps 214.61 ± 94.53"),
-    Row("PPO + LSTM", 2, "paper-lstm", 200_000_000, 60, "steps 126.60 ± 75.71"),
-    Row("PPO + GTrXL", 2, "paper-gtrxl", 50_000_000, 60, "steps 133.90 ± 88.94"),
+    # Table 2 budgets: the target allows 60 min per run; the step budgets (the learning rate anneals
+    # over them) keep one seed near 8 min (MLP, LSTM) or 15 min (GTrXL, ~12k steps/s) on 2 cores.
+    Row("PPO + MLP with memory", 2, "paper-mlp", 60_000_000, 60, "steps 214.61 ± 94.53"),
+    Row("PPO + LSTM", 2, "paper-lstm", 60_000_000, 60, "steps 126.60 ± 75.71"),
+    Row("PPO + GTrXL", 2, "paper-gtrxl", 11_000_000, 60, "steps 133.90 ± 88.94"),
+)
+NOTES = (
+    "Configs: `quicknav presets` / `quicknav_core/train/presets.py`; each seed is the preset with "
+    "`seed` = 0, 1, 2 and the row's step budget; a seed stops at its step budget or its time cap. "
+    "Nothing was tuned on the test bank.",
+    "Table 1 TD3 exploits the paper's sign-of-progress reward (+λp for any step that shortens the "
+    "distance, however little): it collects a higher return than the oracle by wiggling towards the "
+    'goal without reaching it. `reward.progress="linear"` removes the exploit; the row keeps the '
+    "paper's reward.",
+    "Table 2 presets use 64-step rollouts, 16 minibatches of whole env sequences and 4 epochs "
+    "(QuickNav's choice): with the paper's 512-step rollouts recurrent PPO made 16 gradient steps per "
+    "131k env steps and every memory agent stayed at the random policy. Rewards and other PPO values "
+    "are the paper's tuned ones.",
+    "The paper reports means over 10 episodes of one agent; the rows here are 100 held-out episodes "
+    "per seed, mean ± std across seeds. Its Table 2 'steps to finish' is compared with our steps with "
+    "failures counted as the 300-step limit (the stricter figure) and with steps over successes.",
 )
 EVAL_EPISODES = 100
 EVAL_SEED = 0
@@ -177,19 +195,23 @@ def build_report(
         if ms:
             steps = statistics.mean(m["steps_to_goal_failures_as_limit"]["mean"] for m in ms)
             succ = statistics.mean(m["success_rate"] for m in ms)
+            mins = max(r.get("training", {}).get("minutes") or 0 for r in results[preset])
             if best is None or steps < best[1]:
-                best = (preset, steps, succ)
+                best = (preset, steps, succ, mins)
     if best:
         data["targets"].append({"target": "Table 2 best memory network: <= 100 steps (failures = limit), success >= 90%, <= 60 min",
-                                "measured": {"preset": best[0], "steps": best[1], "success": best[2]},
-                                "met": best[1] <= 100 and best[2] >= 0.9})  # fmt: skip
+                                "measured": {"preset": best[0], "steps": best[1], "success": best[2], "max_minutes": best[3]},
+                                "met": best[1] <= 100 and best[2] >= 0.9 and best[3] <= 60})  # fmt: skip
     lines += ["## Targets", ""]
     for t in data["targets"]:
-        lines.append(
-            f"- {t['target']}: {'MET' if t['met'] else 'NOT met'} ({json.dumps(t['measured'])})"
+        shown = ", ".join(
+            f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in t["measured"].items()
         )
+        lines.append(f"- {t['target']}: {'MET' if t['met'] else 'NOT met'} ({shown})")
     if not data["targets"]:
         lines.append("- no row finished yet")
+    lines += ["", "## Notes", ""] + [f"- {note}" for note in NOTES]
+    data["notes"] = list(NOTES)
     return "\n".join(lines) + "\n", data
 
 

@@ -43,6 +43,14 @@ SetOpt = Annotated[
         "--set", help="Override a config field: --set grid_size=8 --set reward.goal_reward=20"
     ),
 ]
+TrainSetOpt = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--set",
+        help="Override a training config field: --set env.grid_size=8 "
+        "--set env.reward.goal_reward=20 --set algorithm.learning_rate=1e-3",
+    ),
+]
 
 
 def fail(message: str, code: int = 2) -> None:
@@ -374,7 +382,7 @@ def train(
     total_steps: Annotated[int | None, typer.Option(help="Env steps to train.")] = None,
     num_envs: Annotated[int | None, typer.Option(help="Parallel envs.")] = None,
     seed: Annotated[int | None, typer.Option(help="Training seed.")] = None,
-    set_: SetOpt = None,
+    set_: TrainSetOpt = None,
     out: Annotated[
         Path | None, typer.Option(help="Run folder (default runs/<preset>-s<seed>).")
     ] = None,
@@ -546,7 +554,7 @@ def sweep(
         int | None, typer.Option(help="Env steps per trial (built-in spaces default to 2,000,000).")
     ] = None,
     seed: Annotated[int, typer.Option(min=0, help="Sampler seed.")] = 0,
-    set_: SetOpt = None,
+    set_: TrainSetOpt = None,
     out: Annotated[Path, typer.Option(help="Sweep folder (resumable: rerun to continue).")] = Path(
         "sweeps/quicknav"
     ),
