@@ -38,7 +38,7 @@ ROWS = (
     Row("TD3 (MLP 2x128)", 1, "paper-td3", 8_000_000, 30, "reward 85.99 ± 36.22"),
     # Table 2 budgets: the target allows 60 min per run; the step budgets (the learning rate anneals
     # over them) keep one seed near 8-12 min on 2 cores (MLP and LSTM train at ~90-130k steps/s,
-    # GTrXL at ~12k steps/s).
+    # GTrXL at ~14k steps/s).
     Row("PPO + MLP with memory", 2, "paper-mlp", 60_000_000, 60, "steps 214.61 ± 94.53"),
     Row("PPO + LSTM", 2, "paper-lstm", 60_000_000, 60, "steps 126.60 ± 75.71"),
     Row("PPO + GTrXL", 2, "paper-gtrxl", 6_000_000, 60, "steps 133.90 ± 88.94"),

@@ -18,12 +18,11 @@ _PAPER_PPO = {
     "gae_lambda": 0.93, "ent_coef": 0.0095, "clip_eps": 0.146, "gamma": 0.96, "num_epochs": 2,
 }  # fmt: skip
 _TABLE2_ENV = {"observe_goal": False}
-# Recurrent PPO replays whole per-env sequences, so the paper's 512-step rollouts split into 8
-# minibatches give only 16 gradient steps per 131k env steps: every Table 2 agent stayed at the
-# random policy (0 % success, KL ~1e-5 after 20M steps). Short rollouts (64 steps; the carry still
-# flows across rollouts) with 16 minibatches x 4 epochs give 64 gradient steps per 16k env steps,
-# about the data reuse of the Table 1 PPO; with them the paper's rewards train (LSTM: 0 -> 83 %
-# training success in 13M steps). The other PPO values are the paper's.
+# Recurrent PPO replays whole per-env sequences: the paper's 512-step rollouts in 8 minibatches gave
+# 16 gradient steps per 131k env steps and no Table 2 agent left the random policy. 64-step rollouts
+# (the carry still flows across them), 16 minibatches and 4 epochs give one gradient step per 256 env
+# steps, as in the Table 1 PPO; with them the paper's rewards train (LSTM: 0 -> 83 % training
+# success in 13M steps).
 _TABLE2_PPO = {
     **_PAPER_PPO,
     "num_steps": 64,

@@ -39,3 +39,26 @@ def test_bench_learning__keeps_committed_seeds_without_their_run_folders(tmp_pat
     assert target["met"]
     # nothing was trained: no run folder appeared
     assert sorted(p.name for p in runs.iterdir() if not p.name.startswith("baseline")) == []
+
+
+def _run(success: float, steps: float, minutes: float, seed: int) -> dict:
+    m = _metrics(success)
+    m["steps_to_goal_failures_as_limit"] = {"mean": steps, "std": 1.0}
+    return {"metrics": m, "training": {"seed": seed, "minutes": minutes}}
+
+
+def test_build_report__table2_target_needs_steps_success_and_time():
+    from quicknav_core.bench_learning import build_report
+
+    def target(success, steps, minutes):
+        rows = {"paper-lstm": [_run(success, steps, minutes, s) for s in range(3)],
+                "paper-gtrxl": [_run(0.0, 300.0, 5.0, s) for s in range(3)]}  # fmt: skip
+        _, data = build_report(rows, {}, 3)
+        t = next(t for t in data["targets"] if "Table 2" in t["target"])
+        assert t["measured"]["preset"] == "paper-lstm"  # the fewest steps, not the fastest run
+        return t["met"]
+
+    assert target(0.92, 95.0, 30.0)
+    assert not target(0.92, 105.0, 30.0)  # too many steps
+    assert not target(0.85, 95.0, 30.0)  # too few successes
+    assert not target(0.92, 95.0, 61.0)  # trained too long
