@@ -104,12 +104,21 @@ def run_one(row: Row, seed: int, runs_dir: Path, scale: float = 1.0, say=print) 
     )
     result["training"] = {
         "env_steps": meta["env_steps"],
+        "machine": _machine(),
         "minutes": json.loads(marker.read_text())["seconds"] / 60 if marker.exists() else None,
         "stopped_by_time_cap": summary["stopped"],
         "seed": seed,
     }
     eval_path.write_text(json.dumps(result, indent=2))
     return result
+
+
+def _machine() -> str:
+    """Where a seed trained, in words (its minutes are only comparable on the same machine)."""
+    from quicknav_core.bench import machine_info
+
+    info = machine_info()
+    return f"{info['cpu']}, {info['cores']} cores, {info['jax_backend']}"
 
 
 def baselines(runs_dir: Path) -> dict[str, dict[str, Any]]:
@@ -211,6 +220,14 @@ def build_report(
         lines.append(f"- {t['target']}: {'MET' if t['met'] else 'NOT met'} ({shown})")
     if not data["targets"]:
         lines.append("- no row finished yet")
+    machines: dict[str, list[str]] = {}
+    for row in ROWS:
+        for run in results.get(row.preset, []):
+            seed = (run.get("training") or {}).get("seed")
+            where = (run.get("training") or {}).get("machine") or "machine not recorded"
+            machines.setdefault(where, []).append(f"{row.preset} s{seed}")
+    lines += ["", "## Machines (train minutes compare only within one machine)", ""]
+    lines += [f"- {where}: {', '.join(runs)}" for where, runs in machines.items()]
     lines += ["", "## Notes", ""] + [f"- {note}" for note in NOTES]
     data["notes"] = list(NOTES)
     return "\n".join(lines) + "\n", data
@@ -233,9 +250,20 @@ def run_learning_bench(out_dir: Path, runs_dir: Path, rows: list[str] | None, se
                 seed = (run.get("training") or {}).get("seed")
                 if seed is not None:
                     kept[(preset, int(seed))] = run
-    results: dict[str, list[dict[str, Any]]] = {}
+    # Until a row is reached, the report shows what was kept for it, so a report written mid-run
+    # (after every seed) never drops a finished seed.
+    results: dict[str, list[dict[str, Any]]] = {
+        row.preset: [kept[(row.preset, s)] for s in range(seeds) if (row.preset, s) in kept]
+        for row in ROWS
+    }
+
+    def write() -> None:
+        markdown, data = build_report(results, base, seeds)
+        (out_dir / "report.md").write_text(markdown)
+        (out_dir / "report.json").write_text(json.dumps(data, indent=2))
+
     for row in ROWS:
-        done = []
+        done: list[dict[str, Any]] = []
         for seed in range(seeds):
             path = runs_dir / f"{_slug(row)}-s{seed}" / "eval" / "eval.json"
             if path.exists():
@@ -245,8 +273,10 @@ def run_learning_bench(out_dir: Path, runs_dir: Path, rows: list[str] | None, se
             elif not rows or row.preset in rows:
                 say(f"{row.name}, seed {seed}")
                 done.append(run_one(row, seed, runs_dir, scale, say))
+                results[row.preset] = done + [
+                    kept[(row.preset, s)] for s in range(seed + 1, seeds) if (row.preset, s) in kept
+                ]
+                write()
         results[row.preset] = done
-        markdown, data = build_report(results, base, seeds)
-        (out_dir / "report.md").write_text(markdown)
-        (out_dir / "report.json").write_text(json.dumps(data, indent=2))
+    write()
     return build_report(results, base, seeds)

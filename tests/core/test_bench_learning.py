@@ -62,3 +62,29 @@ def test_build_report__table2_target_needs_steps_success_and_time():
     assert not target(0.92, 105.0, 30.0)  # too many steps
     assert not target(0.85, 95.0, 30.0)  # too few successes
     assert not target(0.92, 95.0, 61.0)  # trained too long
+
+
+def test_bench_learning__report_written_mid_row_keeps_finished_seeds(tmp_path, monkeypatch):
+    """A session cut off while a row trains must not lose that row's committed seeds."""
+    import quicknav_core.bench_learning as bl
+
+    out, runs = tmp_path / "results", tmp_path / "runs"
+    monkeypatch.setattr(bl, "baselines", lambda runs_dir: {})
+    out.mkdir()
+    seed0 = {"metrics": _metrics(0.5), "training": {"seed": 0, "minutes": 7.0, "machine": "box A"}}
+    (out / "report.json").write_text(json.dumps({"rows": {"paper-gtrxl": {"runs": [seed0]}}}))
+    seen: list[list[int]] = []
+
+    def fake_run_one(row, seed, runs_dir, scale=1.0, say=print):
+        on_disk = json.loads((out / "report.json").read_text())
+        seen.append([r["training"]["seed"] for r in on_disk["rows"]["paper-gtrxl"]["runs"]])
+        run = _run(0.6, 90.0, 8.0, seed)
+        run["training"]["machine"] = "box B"
+        return run
+
+    monkeypatch.setattr(bl, "run_one", fake_run_one)
+    markdown, data = bl.run_learning_bench(out, runs, rows=["paper-gtrxl"], seeds=3)
+    assert seen == [[0], [0, 1]]  # seed 0 stays in the report while seeds 1 and 2 train
+    assert [r["training"]["seed"] for r in data["rows"]["paper-gtrxl"]["runs"]] == [0, 1, 2]
+    assert "- box A: paper-gtrxl s0" in markdown
+    assert "- box B: paper-gtrxl s1, paper-gtrxl s2" in markdown
