@@ -56,9 +56,9 @@ NOTES = (
     "131k env steps and every memory agent stayed at the random policy. Rewards and other PPO values "
     "are the paper's tuned ones.",
     "PPO + GTrXL is undertrained: its 6M-step budget was set from seed 0's ~14k steps/s; seeds 1-2 "
-    "ran at ~5.5k steps/s on another machine (see Machines) and all three stopped while their "
-    "training success was still rising (seed 2 reached 17 % held-out). A 60-min budget per seed "
-    "(~20-50M steps) is the next run to make.",
+    "ran at ~5.5k steps/s on another machine (see Machines). At 6M steps the three seeds are early "
+    "in learning (held-out success 0 %, 2 %, 17 %); MLP and LSTM got 60M. A 60-min budget per "
+    "seed is the next run to make.",
     "Seeds with 'machine not recorded' ran before the report stored machines, on this project's "
     "2-core CPU VMs.",
     "The paper reports means over 10 episodes of one agent; the rows here are 100 held-out episodes "
