@@ -209,10 +209,14 @@ async def submit_eval(body: EvalJobCreate, store: StoreDep, settings: SettingsDe
     return _submit(store, JobKind.eval, body.model_dump(mode="json"), idempotency_key, response)
 
 
+# SQLite binds 64-bit integers only; no store holds anywhere near this many jobs.
+MAX_LIST_OFFSET = 2**31 - 1
+
+
 @jobs.get("", response_model=JobsPublic)
 async def list_jobs(store: StoreDep, status: JobStatus | None = None, kind: JobKind | None = None,
               limit: Annotated[int, Query(ge=1, le=500)] = 50,
-              offset: Annotated[int, Query(ge=0)] = 0) -> JobsPublic:  # fmt: skip
+              offset: Annotated[int, Query(ge=0, le=MAX_LIST_OFFSET)] = 0) -> JobsPublic:  # fmt: skip
     data, count = store.list(status=status, kind=kind, limit=limit, offset=offset)
     return JobsPublic(data=[public(j) for j in data], count=count)
 

@@ -178,6 +178,10 @@ def test_bad_input_is_refused_with_named_fields(live):
     assert r.status_code == 422 and "grid_size" in r.text
     r = httpx.post(f"{live.url}/jobs/eval", json={"policy": "random", "episodes": 0})
     assert r.status_code == 422 and "episodes" in r.text
+    # an offset beyond SQLite's 64-bit integers was a 500 (found by the fuzz test)
+    r = httpx.get(f"{live.url}/jobs", params={"offset": 2**63})
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["query", "offset"]
+    assert "2147483647" in r.text
     r = httpx.post(f"{live.url}/jobs/eval", json={"job_id": "nope"})
     assert r.status_code == 404
     big = {"preset": "demo", "overrides": {"note": "x" * 2_000_000}}
