@@ -211,6 +211,7 @@ async def submit_eval(body: EvalJobCreate, store: StoreDep, settings: SettingsDe
 
 # SQLite binds 64-bit integers only; no store holds anywhere near this many jobs.
 MAX_LIST_OFFSET = 2**31 - 1
+MAX_EVENT_ID = 2**63 - 1  # event ids are SQLite/Redis 64-bit integers
 
 
 @jobs.get("", response_model=JobsPublic)
@@ -335,8 +336,12 @@ async def job_events(job_id: str, request: Request, store: StoreDep,
     await anyio.to_thread.run_sync(_get, store, job_id)
     try:
         after = int(last_event_id) if last_event_id else 0
+        if not 0 <= after <= MAX_EVENT_ID:
+            raise ValueError
     except ValueError:
-        raise HTTPException(400, "Last-Event-ID must be an event id (an integer)") from None
+        raise HTTPException(
+            400, f"Last-Event-ID must be an event id (an integer from 0 to {MAX_EVENT_ID})"
+        ) from None
 
     async def stream():
         nonlocal after

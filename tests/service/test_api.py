@@ -182,6 +182,11 @@ def test_bad_input_is_refused_with_named_fields(live):
     r = httpx.get(f"{live.url}/jobs", params={"offset": 2**63})
     assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["query", "offset"]
     assert "2147483647" in r.text
+    r = httpx.post(f"{live.url}/jobs/eval", json={"policy": "random", "episodes": 4})
+    job = r.json()["id"]
+    for bad in (str(2**63), "-1", "abc"):
+        r = httpx.get(f"{live.url}/jobs/{job}/events", headers={"Last-Event-ID": bad})
+        assert r.status_code == 400 and "Last-Event-ID" in r.text, (bad, r.text)
     r = httpx.post(f"{live.url}/jobs/eval", json={"job_id": "nope"})
     assert r.status_code == 404
     big = {"preset": "demo", "overrides": {"note": "x" * 2_000_000}}
