@@ -34,17 +34,20 @@ RUN --mount=type=cache,target=/root/.cache/uv \
     --mount=type=bind,source=uv.lock,target=uv.lock \
     --mount=type=bind,source=pyproject.toml,target=pyproject.toml \
     --mount=type=bind,source=clients/pyproject.toml,target=clients/pyproject.toml \
-    uv sync --locked --no-dev --no-install-workspace ${JAX_EXTRA:+--extra "$JAX_EXTRA"}
+    uv sync --locked --no-dev --extra service --no-install-workspace ${JAX_EXTRA:+--extra "$JAX_EXTRA"}
 
 # 2. The project and the client package it depends on. --no-editable installs both into the venv
-#    as wheels (the client's gRPC stubs are generated here by clients/hatch_build.py, with
-#    grpcio-tools from its [build-system]), so the venv alone is the application.
+#    as wheels (the client's gRPC stubs are generated here by clients/hatch_build.py from proto/,
+#    with grpcio-tools from its [build-system]), so the venv alone is the application. The
+#    `service` extra brings the HTTP API, the gRPC server and the job stores.
 COPY pyproject.toml uv.lock README.md ./
+COPY proto ./proto
 COPY clients ./clients
 COPY quicknav_core ./quicknav_core
+COPY quicknav_cli ./quicknav_cli
 COPY service ./service
 RUN --mount=type=cache,target=/root/.cache/uv \
-    uv sync --locked --no-dev --no-editable ${JAX_EXTRA:+--extra "$JAX_EXTRA"}
+    uv sync --locked --no-dev --extra service --no-editable ${JAX_EXTRA:+--extra "$JAX_EXTRA"}
 
 
 FROM ${PYTHON_IMAGE} AS runtime

@@ -114,7 +114,7 @@ def main() -> None:
     args = ap.parse_args()
 
     port = _free_port()
-    cmd = [sys.executable, "-m", "quicknav_core.cli", "rollout-server", "--port", str(port)]
+    cmd = [sys.executable, "-m", "quicknav_cli", "rollout-server", "--port", str(port)]
     if args.cpu_devices:
         cmd += ["--cpu-devices", str(args.cpu_devices)]
     env = {**os.environ, "QUICKNAV_MAX_ENVS": str(max(args.envs))}

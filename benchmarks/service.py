@@ -124,9 +124,10 @@ def submissions_wrk(seconds: int, concurrency: int) -> dict:
 
 
 def sse_latency(store, n_events: int = 200) -> dict:
-    job, _ = store.submit(
-        "eval", {"policy": "random", "episodes": 1, "seed": 0, "env": {}, "stochastic": False}
-    )
+    from quicknav_core.config import resolve_eval
+
+    request = {"policy": "random", "episodes": 1, "seed": 0}
+    job, _ = store.submit("eval", request, resolve_eval(request).model_dump(mode="json"))
     received: list[float] = []
     ready = threading.Event()
 
@@ -156,8 +157,7 @@ def sse_latency(store, n_events: int = 200) -> dict:
 
 def warm_vs_cold(data_dir: Path) -> dict:
     """Time from claim to first progress for the same train job, twice, in one worker."""
-    from quicknav_core.config import apply_overrides
-    from quicknav_core.train.presets import get_preset
+    from quicknav_core.config import resolve_train
     from service.jobs.sqlite_store import SQLiteJobStore
     from service.settings import Settings
     from service.worker import Worker
@@ -168,10 +168,11 @@ def warm_vs_cold(data_dir: Path) -> dict:
     from service.worker import _enable_jax_cache
 
     _enable_jax_cache(settings)
-    cfg = apply_overrides(get_preset("demo"), ["total_steps=65536", "chunk_steps=32768"])
+    request = {"preset": "demo", "overrides": {"total_steps": 65536, "chunk_steps": 32768}}
+    cfg = resolve_train(request)
     times = []
     for _ in range(2):
-        job, _ = store.submit("train", {"config": cfg.model_dump(mode="json")})
+        job, _ = store.submit("train", request, cfg.model_dump(mode="json"))
         assert worker.run_once()
         events = store.events(job.id)
         started = next(e["time"] for _, e in events if e["type"] == "started")
@@ -194,7 +195,7 @@ def main() -> None:
     env = {**os.environ, "QUICKNAV_REDIS_URL": REDIS_URL, "QUICKNAV_DATA_DIR": str(tmp / "api"),
            "QUICKNAV_PORT": str(PORT)}  # fmt: skip
     api_workers = os.environ.get("QUICKNAV_BENCH_API_WORKERS", "2")
-    server = subprocess.Popen([sys.executable, "-m", "quicknav_core.cli", "serve", "--no-worker", "--no-grpc",
+    server = subprocess.Popen([sys.executable, "-m", "quicknav_cli", "serve", "--no-worker", "--no-grpc",
                                "--api-workers", api_workers], env=env,
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
     results: dict = {}
@@ -228,7 +229,7 @@ def main() -> None:
         r.flushdb()
     results["warm_vs_cold"] = warm_vs_cold(tmp / "worker")
     print("warm vs cold:", results["warm_vs_cold"], flush=True)
-    from quicknav_core.bench import machine_info
+    from quicknav_core.bench.machine import machine_info
 
     results["machine"] = machine_info()
     results["targets"] = {

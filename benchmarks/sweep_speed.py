@@ -13,9 +13,9 @@ import sys
 import time
 from pathlib import Path
 
-from quicknav_core.bench import machine_info
-from quicknav_core.sweep import SweepConfig, run_sweep
-from quicknav_core.train.presets import get_preset
+from quicknav_core.bench.machine import machine_info
+from quicknav_core.config import SweepConfig, get_preset
+from quicknav_core.sweep import run_sweep
 
 TRIALS = int(sys.argv[1]) if len(sys.argv) > 1 else 8
 STEPS = int(sys.argv[2]) if len(sys.argv) > 2 else 500_000

@@ -23,346 +23,21 @@ import traceback
 import warnings
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
-import jax
-import jax.numpy as jnp
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from quicknav_core.config import TrainConfig
+from quicknav_core.config import TrainConfig, apply_overrides
+from quicknav_core.config.sweep import METRICS, ParamSpec, SweepConfig
+from quicknav_core.train.batched import shape_signature, train_batch
 
-# --------------------------------------------------------------------------- config
-
-
-class ParamSpec(BaseModel):
-    """One dimension of a search space."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    type: Literal["float", "log_float", "int", "categorical"]
-    low: float | None = None
-    high: float | None = None
-    choices: list[Any] | None = None
-
-    @model_validator(mode="after")
-    def _check(self) -> ParamSpec:
-        if self.type == "categorical":
-            if not self.choices:
-                raise ValueError("categorical parameter needs a non-empty 'choices' list")
-            return self
-        if self.low is None or self.high is None:
-            raise ValueError(f"{self.type} parameter needs 'low' and 'high'")
-        if self.low > self.high:
-            raise ValueError(f"low={self.low} > high={self.high}; allowed: low <= high")
-        if self.type == "log_float" and self.low <= 0:
-            raise ValueError(f"log_float needs low > 0 (got low={self.low})")
-        return self
-
-
-def _f(lo, hi):
-    return {"type": "float", "low": lo, "high": hi}
-
-
-def _cat(*choices):
-    return {"type": "categorical", "choices": list(choices)}
-
-
-_REWARDS = {
-    "env.reward.step_penalty": _f(0.01, 0.5),
-    "env.reward.progress_reward": _f(0.1, 1.0),
-    "env.reward.cycle_penalty": _f(0.001, 0.5),
-}
-# The paper's appendix, parameter by parameter.
-BUILTIN_SPACES: dict[str, dict[str, dict[str, Any]]] = {
-    "ppo": {
-        "algorithm.learning_rate": {"type": "log_float", "low": 1e-5, "high": 1e-3},
-        "algorithm.num_minibatches": _cat(16, 32, 64, 128, 256),
-        "algorithm.num_steps": _cat(64, 128, 256, 512),
-        "algorithm.gae_lambda": _f(0.9, 1.0),
-        "algorithm.ent_coef": _f(0.0, 0.1),
-        "algorithm.clip_eps": _f(0.1, 0.3),
-        "algorithm.gamma": _f(0.9, 0.999),
-    },
-    "sac": {
-        "algorithm.learning_rate": {"type": "log_float", "low": 1e-5, "high": 1e-3},
-        "algorithm.batch_size": _cat(64, 128, 256, 512),
-        "algorithm.buffer_size": _cat(50_000, 100_000, 200_000, 500_000),
-        "algorithm.polyak": _f(0.9, 0.999),
-        "algorithm.target_entropy_ratio": _f(0.5, 1.0),
-        "algorithm.target_update_freq": _cat(1, 2, 3, 4),
-        "algorithm.gamma": _f(0.9, 0.999),
-    },
-    "td3": {
-        "algorithm.learning_rate": {"type": "log_float", "low": 1e-5, "high": 1e-3},
-        "algorithm.exploration_noise": _f(0.1, 0.5),
-        "algorithm.buffer_size": _cat(50_000, 100_000, 200_000, 500_000),
-        "algorithm.batch_size": _cat(64, 128, 256, 512),
-        "algorithm.polyak": _f(0.9, 0.999),
-        "algorithm.target_noise": _f(0.1, 0.4),
-        "algorithm.policy_delay": _cat(1, 2, 3, 4),
-    },
-    "mlp": {
-        "network.hidden_layers": {"type": "int", "low": 1, "high": 3},
-        "network.hidden_size": _cat(64, 128, 256),
-        **_REWARDS,
-    },
-    "lstm": {
-        "network.num_layers": {"type": "int", "low": 2, "high": 10},
-        "network.hidden_size": {"type": "int", "low": 5, "high": 16},
-        **_REWARDS,
-    },
-    "gtrxl": {
-        "network.embed_size": _cat(8, 16),
-        "network.head_size": {"type": "int", "low": 1, "high": 8},
-        "network.num_layers": {"type": "int", "low": 2, "high": 5},
-        **_REWARDS,
-    },
-}
-# Base presets the built-in spaces start from.
-SPACE_PRESETS = {"ppo": "paper-ppo", "sac": "paper-sac", "td3": "paper-td3",
-                 "mlp": "paper-mlp", "lstm": "paper-lstm", "gtrxl": "paper-gtrxl"}  # fmt: skip
-
-METRICS = {
-    "success_rate": ("success_rate", "maximize"),
-    "spl": ("spl", "maximize"),
-    "steps_to_goal": ("steps_to_goal_failures_as_limit", "minimize"),
-    "return": ("return", "maximize"),
-    "collisions": ("collisions_per_episode", "minimize"),
-}
-
-
-class SweepConfig(BaseModel):
-    """A sweep: base TrainConfig, search space, objective, trials, sampler, pruner, storage."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    base: TrainConfig
-    space: dict[str, ParamSpec] = Field(min_length=1)
-    objective: Literal["success_rate", "spl", "steps_to_goal", "return", "collisions"] = (
-        "success_rate"
-    )
-    direction: Literal["maximize", "minimize"] | None = None  # default: the metric's natural one
-    trials: int = Field(20, ge=1, le=100_000)
-    parallel: int = Field(
-        1, ge=1, le=1024, description="trials asked at once (batched when shapes agree)"
-    )
-    sampler: Literal["tpe", "random"] = "tpe"
-    sampler_seed: int = Field(0, ge=0, le=2**31 - 1)
-    pruner: Literal["none", "median"] = "none"
-    storage: str | None = Field(
-        None, description="None: SQLite file in the sweep folder; redis://... : journal on Redis"
-    )
-    study_name: str = Field("quicknav", min_length=1, max_length=200)
-    eval_episodes: int = Field(50, ge=1, le=10_000)
-    eval_seed: int = Field(1000, ge=0, le=2**31 - 1)
-
-    @property
-    def resolved_direction(self) -> str:
-        return self.direction or METRICS[self.objective][1]
-
-    @model_validator(mode="after")
-    def _check_space(self) -> SweepConfig:
-        for name, spec in self.space.items():
-            probe = spec.choices[0] if spec.type == "categorical" else (
-                int(spec.low) if spec.type == "int" else spec.low)  # fmt: skip
-            try:
-                apply_params(self.base, {name: probe}, validate=False)
-            except KeyError as e:
-                raise ValueError(f"space: unknown parameter {name!r}: {e.args[0]}") from None
-        return self
-
-
-def builtin_sweep(name: str, **kw) -> SweepConfig:
-    """A SweepConfig over a built-in space on its paper preset."""
-    from quicknav_core.train.presets import get_preset
-
-    if name not in BUILTIN_SPACES:
-        raise ValueError(f"unknown search space {name!r}; built-in: {', '.join(BUILTIN_SPACES)}")
-    base = kw.pop("base", None) or get_preset(SPACE_PRESETS[name])
-    return SweepConfig(base=base, space=BUILTIN_SPACES[name], **kw)
-
-
-# --------------------------------------------------------------------------- params -> config
-def apply_params(base: TrainConfig, params: dict[str, Any], validate: bool = True) -> TrainConfig:
-    """Set dotted-path parameters on the base config. ``network.hidden_layers``/``hidden_size`` of an
-    MLP become ``hidden_sizes``. Unknown paths raise KeyError."""
-    data = base.model_dump(mode="json")
-    mlp_layers = mlp_size = None
-    for path, value in params.items():
-        if data["network"]["kind"] == "mlp" and path == "network.hidden_layers":
-            mlp_layers = int(value)
-            continue
-        if data["network"]["kind"] == "mlp" and path == "network.hidden_size":
-            mlp_size = int(value)
-            continue
-        node = data
-        parts = path.split(".")
-        for part in parts[:-1]:
-            if not isinstance(node, dict) or part not in node or not isinstance(node[part], dict):
-                raise KeyError(f"{part!r} is not a section of the config")
-            node = node[part]
-        if parts[-1] not in node:
-            raise KeyError(
-                f"{parts[-1]!r} is not a field of {'.'.join(parts[:-1]) or 'TrainConfig'}"
-            )
-        node[parts[-1]] = value
-    if mlp_layers is not None or mlp_size is not None:
-        sizes = data["network"]["hidden_sizes"]
-        layers = mlp_layers or len(sizes)
-        size = mlp_size or sizes[0]
-        data["network"]["hidden_sizes"] = [size] * layers
-    return TrainConfig.model_validate(data) if validate else base
-
-
-TRACED_FIELDS = {
-    "algorithm": {
-        "learning_rate",
-        "gamma",
-        "gae_lambda",
-        "clip_eps",
-        "ent_coef",
-        "vf_coef",
-        "max_grad_norm",
-        "polyak",
-        "target_entropy_ratio",
-        "exploration_noise",
-        "target_noise",
-        "target_noise_clip",
-    },
-    "reward": {
-        "exploration_reward",
-        "step_penalty",
-        "collision_penalty",
-        "cycle_penalty",
-        "progress_reward",
-        "goal_reward",
-        "cycle_cap",
-    },
-}
-
-
-def canonical(cfg: TrainConfig) -> TrainConfig:
-    """The config with every traced number at its default: one template per shape signature."""
-    data = cfg.model_dump(mode="json")
-    algo_defaults = type(cfg.algorithm)().model_dump(mode="json")
-    for k in TRACED_FIELDS["algorithm"]:
-        if k in data["algorithm"]:
-            data["algorithm"][k] = algo_defaults[k]
-    reward_defaults = type(cfg.env.reward)().model_dump(mode="json")
-    for k in TRACED_FIELDS["reward"]:
-        data["env"]["reward"][k] = reward_defaults[k]
-    return TrainConfig.model_validate(data)
-
-
-def shape_signature(cfg: TrainConfig) -> str:
-    """The config with every traced number blanked: trials with equal signatures batch together."""
-    data = cfg.model_dump(mode="json")
-    for k in TRACED_FIELDS["algorithm"]:
-        data["algorithm"].pop(k, None)
-    for k in TRACED_FIELDS["reward"]:
-        data["env"]["reward"].pop(k, None)
-    return json.dumps(data, sort_keys=True)
-
-
-# --------------------------------------------------------------------------- batched training
-# compiled batched programs, reused by later groups with the same shapes and trial count
-_COMPILED: dict[Any, Any] = {}
-
-
-def train_batch(
-    configs: list[TrainConfig], on_chunk: Callable[[int, list[dict]], bool] | None = None
-):
-    """Train configs with one shape signature together. Returns (trainer, per-trial states, metrics).
-
-    Recurrent PPO vmaps over (PPOHyper, EnvParams) inside its state; rejax algorithms are pytrees
-    whose traced fields are stacked and vmapped over.
-    """
-    from quicknav_core.train.recurrent_ppo import PPOHyper
-    from quicknav_core.train.stats import summarize
-    from quicknav_core.train.trainers import RecurrentPPOTrainer, RejaxTrainer, make_trainer
-
-    sigs = {shape_signature(c) for c in configs}
-    if len(sigs) != 1:
-        raise ValueError("train_batch needs configs with one shape signature")
-    template = make_trainer(canonical(configs[0]))
-    k = len(configs)
-    env_params = [template.env_params.replace(**_reward_params(c)) for c in configs]
-    stack = lambda xs: jax.tree.map(lambda *a: jnp.stack(a), *xs)  # noqa: E731
-    key = jax.random.PRNGKey(configs[0].seed)
-    if isinstance(template, RecurrentPPOTrainer):
-        hypers = stack([PPOHyper.from_config(c.algorithm) for c in configs])
-        cache_key = ("rppo", shape_signature(configs[0]), k)
-        if cache_key not in _COMPILED:
-            algo = template.algo
-            _COMPILED[cache_key] = (
-                jax.jit(jax.vmap(algo.init, in_axes=(None, 0, 0))),
-                jax.jit(jax.vmap(lambda s: algo.chunk(s, template.updates_per_chunk))),
-            )
-        init, chunk = _COMPILED[cache_key]
-        states = init(key, hypers, stack(env_params))
-
-        def run(states):
-            states, _ = chunk(states)
-            return states, jax.vmap(lambda st: st.stats)(states)
-
-        clear = jax.jit(
-            jax.vmap(lambda s: s.replace(stats=jax.vmap(lambda x: x.clear_totals())(s.stats)))
-        )
-    elif isinstance(template, RejaxTrainer):
-        # rejax builds its optimiser (a static closure over the learning rate) in init_state, so
-        # init and training must sit inside one vmapped call: the group trains in one go.
-        steps = template.num_updates * configs[0].steps_per_update
-        full = template.algo.replace(total_timesteps=steps, eval_freq=template.steps_per_chunk)
-
-        def trial_algo(c, p):
-            # the template's algorithm (same static fields) with this trial's traced numbers
-            algo = c.algorithm
-            values = {n: jnp.float32(getattr(algo, n)) for n in TRACED_FIELDS["algorithm"]
-                      if hasattr(algo, n) and hasattr(full, n)}  # fmt: skip
-            return full.replace(env_params=p, **values)
-
-        algos = stack([trial_algo(c, p) for c, p in zip(configs, env_params, strict=True)])
-        cache_key = ("rejax", shape_signature(configs[0]), k)
-        if cache_key not in _COMPILED:
-            _COMPILED[cache_key] = jax.jit(
-                jax.vmap(lambda a, key: a.train(key)[0], in_axes=(0, None))
-            )
-        final = _COMPILED[cache_key](algos, key)
-        stats = final.env_state.stats
-        per_trial = [summarize(jax.tree.map(lambda x, i=i: x[i], stats)) for i in range(k)]
-        if on_chunk:
-            on_chunk(0, per_trial)
-        unstacked = [jax.tree.map(lambda x, i=i: x[i], final) for i in range(k)]
-        return template, unstacked, env_params, [per_trial]
-    else:  # pragma: no cover
-        raise TypeError(type(template).__name__)
-    chunks = template.num_updates // template.updates_per_chunk
-    history: list[list[dict]] = []
-    for c in range(chunks):
-        states, stats = run(states)
-        per_trial = [summarize(jax.tree.map(lambda x, i=i: x[i], stats)) for i in range(k)]
-        history.append(per_trial)
-        states = clear(states)
-        if on_chunk and on_chunk(c, per_trial):
-            break
-    unstacked = [jax.tree.map(lambda x, i=i: x[i], states) for i in range(k)]
-    return template, unstacked, env_params, history
-
-
-def _reward_params(cfg: TrainConfig) -> dict[str, Any]:
-    r = cfg.env.reward
-    return {
-        "step_penalty": np.float32(r.step_penalty), "collision_penalty": np.float32(r.collision_penalty),
-        "cycle_penalty": np.float32(r.cycle_penalty), "progress_reward": np.float32(r.progress_reward),
-        "goal_reward": np.float32(r.goal_reward), "cycle_cap": np.int32(r.cycle_cap),
-        "exploration_reward": np.float32(r.exploration_reward),
-    }  # fmt: skip
-
+__all__ = ["SweepConfig", "evaluate_trial", "make_storage", "objective_value", "run_sweep",
+           "write_outputs"]  # fmt: skip
 
 def evaluate_trial(trainer, state, env_params, cfg: SweepConfig) -> dict[str, Any]:
     """Navigation metrics of one trained trial on the train bank (never the test bank)."""
-    from quicknav_core.evaluate import EvalConfig, PolicyAgent, run_episodes, summarize
+    from quicknav_core.config import EvalConfig
+    from quicknav_core.eval.evaluate import PolicyAgent, run_episodes, summarize
 
     ecfg = EvalConfig(episodes=cfg.eval_episodes, seed=cfg.eval_seed, split="train", pictures=False,
                       gif_episodes=0)  # fmt: skip
@@ -435,7 +110,7 @@ def run_sweep(
         groups: dict[str, list[tuple[Any, TrainConfig]]] = {}
         for trial in asked:
             try:
-                tcfg = apply_params(cfg.base, _sample(trial, cfg.space))
+                tcfg = apply_overrides(cfg.base, _sample(trial, cfg.space))
             except Exception as e:
                 trial.set_user_attr("error", f"{type(e).__name__}: {e}")
                 study.tell(trial, state=optuna.trial.TrialState.FAIL)
@@ -511,7 +186,7 @@ def write_outputs(study, cfg: SweepConfig, out_dir: Path) -> dict[str, Any]:
             json.dumps({"value": best_value, "params": best_params}, indent=2)
         )
         (out_dir / "best_config.json").write_text(
-            apply_params(cfg.base, best_params).model_dump_json(indent=2)
+            apply_overrides(cfg.base, best_params).model_dump_json(indent=2)
         )
     complete = [t for t in trials if t.state == optuna.trial.TrialState.COMPLETE]
     if complete:

@@ -44,7 +44,18 @@ class Settings(BaseSettings):
     max_grid_size: int = Field(64, ge=4, le=128)
     max_eval_episodes: int = Field(10_000, ge=1)
     max_sweep_trials: int = Field(1000, ge=1)
-    max_concurrent_jobs: int = Field(1, ge=1, le=64, description="in-process worker threads")
+    max_concurrent_jobs: int = Field(
+        1, ge=1, le=64, description="worker processes `quicknav serve` runs and supervises"
+    )
+    max_chunk_s: float = Field(
+        10.0, gt=0.0, le=3600.0,
+        description="a training chunk (progress event, checkpoint) lasts at most this long",
+    )
+    max_job_memory_mb: int = Field(
+        8192, ge=64, le=16_777_216,
+        description="a job whose estimated memory exceeds this is refused at submission",
+    )
+    max_lidar_beams: int = Field(256, ge=1, le=1024, description="largest lidar_beams accepted")
     lease_s: float = Field(60.0, gt=0.5, le=3600)
     heartbeat_s: float = Field(10.0, gt=0.05, le=600)
     max_attempts: int = Field(3, ge=1, le=100)

@@ -1,17 +1,23 @@
 """The worker: claims jobs under a lease, runs them through quicknav_core, reports progress.
 
 - A heartbeat thread renews the lease while a job runs; if the lease is lost (another worker took
-  the job over) the run stops at its next chunk boundary without reporting anything.
-- Training runs through the chunked runner: a progress event after every chunk, cancellation and
-  shutdown checked between chunks, a checkpoint at every chunk boundary, so a reclaimed job resumes
-  from its last checkpoint.
-- Graceful shutdown (SIGTERM): stop at a chunk boundary, keep the checkpoint, hand the job back.
+  the job over) the run stops at its next unit without reporting anything.
+- Training runs through the chunked runner: chunks last at most ``max_chunk_s`` seconds, a
+  progress event and a checkpoint after each, and cancellation and shutdown are checked after
+  every unit (about a second of training), so a cancel takes effect within seconds and a
+  reclaimed job resumes from its last checkpoint. Evaluations run in batches of episodes with a
+  progress event and a cancel check after each.
+- Graceful shutdown (SIGTERM): stop after the current unit, keep the checkpoint, hand the job back.
+- Failures are job failures, never worker deaths: a full disk fails the job with a reason that
+  says so and what was kept; a store outage (Redis down, SQLite unable to write) is waited out
+  with backoff, and the worker carries on when the store is back.
 - Trainers are kept warm across jobs with the same config (same compiled programs), and JAX's
   persistent compilation cache is on, so a repeated job skips compilation.
 """
 
 from __future__ import annotations
 
+import errno
 import logging
 import os
 import socket
@@ -19,17 +25,48 @@ import threading
 import time
 import traceback
 import uuid
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from service.jobs.models import Job, JobKind, JobStatus
+from service.jobs.models import Job, JobKind, JobStatus, StoreUnavailable
 from service.settings import Settings
 
 log = logging.getLogger("quicknav.worker")
 
+MAX_BACKOFF_S = 10.0
+CANCEL_POLL_S = 1.0  # a running job's cancel flag is read at most this often
 
-class _Stop(Exception):
-    """Internal: the run stopped early (cancel, shutdown, or lease lost)."""
+
+def failure_reason(error: BaseException, job_dir: Path) -> str:
+    """A job's failure in words a person can act on: a full disk and memory are named."""
+    text = f"{type(error).__name__}: {error}"
+    if isinstance(error, OSError) and error.errno == errno.ENOSPC:
+        return f"disk full (ENOSPC) while writing {error.filename or 'a file'}; {kept(job_dir)}"
+    if isinstance(error, MemoryError) or "RESOURCE_EXHAUSTED" in str(error):
+        return f"out of memory: {text[:500]}"
+    return text
+
+
+def kept(job_dir: Path) -> str:
+    """What a failed job leaves behind (the last checkpoint, metrics lines)."""
+    from quicknav_core.train.run import METRICS_FILE, checkpoint_dir
+
+    parts = []
+    ckpt = checkpoint_dir(job_dir) if job_dir.exists() else None
+    if ckpt is not None:
+        try:
+            import json
+
+            meta = json.loads((ckpt / "meta.json").read_text())
+            parts.append(f"the checkpoint of chunk {meta['chunk']} ({meta['env_steps']:,} env steps)")
+        except (OSError, ValueError, KeyError):
+            parts.append("the last checkpoint")
+    metrics = job_dir / METRICS_FILE
+    if metrics.exists():
+        lines = sum(1 for line in metrics.read_text().splitlines() if line.strip())
+        parts.append(f"metrics.jsonl ({lines} chunks)")
+    return "kept: " + (", ".join(parts) if parts else "nothing (no checkpoint yet)")
 
 
 class Worker:
@@ -44,9 +81,24 @@ class Worker:
 
     # ------------------------------------------------------------------ loop
     def run_forever(self, poll_s: float = 0.25) -> None:
+        """Claim and run jobs until shut down; nothing a job or the store does ends the loop."""
         _enable_jax_cache(self.settings)
+        backoff = poll_s
         while not self.shutdown.is_set():
-            if not self.run_once():
+            try:
+                ran = self.run_once()
+                backoff = poll_s
+            except StoreUnavailable as e:
+                log.warning("job store unavailable (%s): retrying in %.1f s", e.reason, backoff)
+                self.shutdown.wait(backoff)
+                backoff = min(backoff * 2, MAX_BACKOFF_S)
+                continue
+            except Exception:
+                log.exception("worker %s: unexpected error, carrying on", self.id)
+                self.shutdown.wait(backoff)
+                backoff = min(backoff * 2, MAX_BACKOFF_S)
+                continue
+            if not ran:
                 self.shutdown.wait(poll_s)
 
     def run_burst(self, poll_s: float = 0.25) -> int:
@@ -59,10 +111,15 @@ class Worker:
         _enable_jax_cache(self.settings)
         ran = 0
         while not self.shutdown.is_set():
-            if self.run_once():
-                ran += 1
+            try:
+                if self.run_once():
+                    ran += 1
+                    continue
+                counts = self.store.counts()
+            except StoreUnavailable as e:
+                log.warning("job store unavailable (%s): waiting", e.reason)
+                self.shutdown.wait(1.0)
                 continue
-            counts = self.store.counts()
             if counts.get("queued", 0) == 0 and counts.get("running", 0) == 0:
                 break
             self.shutdown.wait(poll_s)
@@ -81,9 +138,14 @@ class Worker:
 
         def beat():
             while not beat_stop.wait(self.settings.heartbeat_s):
-                if not self.store.heartbeat(job.id, self.id, self.settings.lease_s):
-                    lost.set()
-                    return
+                try:
+                    if not self.store.heartbeat(job.id, self.id, self.settings.lease_s):
+                        lost.set()
+                        return
+                except StoreUnavailable:
+                    continue  # an outage: keep trying; the lease decides if it lasts too long
+                except Exception:
+                    log.exception("heartbeat of job %s", job.id)
 
         hb = threading.Thread(target=beat, name=f"heartbeat-{job.id[:8]}", daemon=True)
         hb.start()
@@ -95,22 +157,76 @@ class Worker:
             self.busy = False
         return True
 
+    # ------------------------------------------------------------------ store calls
+    def _best_effort(self, fn: Callable, *args) -> Any:
+        """A store call whose loss costs nothing lasting (a progress event): skipped in an outage."""
+        try:
+            return fn(*args)
+        except StoreUnavailable as e:
+            log.warning("job store unavailable (%s): %s skipped", e.reason, fn.__name__)
+            return None
+
+    def _until_done(self, fn: Callable, *args, **kwargs) -> Any:
+        """A store call that must land (a job's end): retried with backoff through outages. On a
+        shutdown it is abandoned: the lease lapses and another worker finishes the job."""
+        backoff = 0.25
+        while True:
+            try:
+                return fn(*args, **kwargs)
+            except StoreUnavailable as e:
+                if self.shutdown.is_set():
+                    log.warning("shutting down during a store outage; %s abandoned", fn.__name__)
+                    return None
+                log.warning("job store unavailable (%s): %s again in %.1f s", e.reason,
+                            fn.__name__, backoff)  # fmt: skip
+                self.shutdown.wait(backoff)
+                backoff = min(backoff * 2, MAX_BACKOFF_S)
+
     # ------------------------------------------------------------------ jobs
     def job_dir(self, job_id: str) -> Path:
         return self.settings.artifacts_dir / job_id
 
-    def _should_stop(self, job: Job, lost: threading.Event) -> str | None:
-        if lost.is_set():
-            return "lost"
-        if self.shutdown.is_set():
-            return "shutdown"
-        if self.store.get(job.id).cancel_requested:
-            return "cancelled"
-        return None
+    def _stopper(self, job: Job, lost: threading.Event) -> Callable[[], str | None]:
+        """Why the job should stop now (lost lease, shutdown, cancel), or None. Cheap to ask
+        often: the store is read at most every CANCEL_POLL_S seconds."""
+        seen = {"at": 0.0, "cancel": False}
+
+        def reason() -> str | None:
+            if lost.is_set():
+                return "lost"
+            if self.shutdown.is_set():
+                return "shutdown"
+            now = time.monotonic()
+            if now - seen["at"] >= CANCEL_POLL_S:
+                seen["at"] = now
+                try:
+                    seen["cancel"] = self.store.get(job.id).cancel_requested
+                except StoreUnavailable:
+                    pass
+            return "cancelled" if seen["cancel"] else None
+
+        return reason
+
+    @staticmethod
+    def config_of(job: Job) -> dict[str, Any]:
+        """The job's resolved config (jobs stored before configs were keep it in the request)."""
+        if job.config:
+            return job.config
+        if job.kind in (JobKind.train, JobKind.sweep) and "config" in job.request:
+            return job.request["config"]
+        raise ValueError(
+            "the job has no resolved config (it was submitted to an older version of the"
+            " service); submit it again"
+        )
+
+    def _report(self, job: Job, progress: float, metrics: dict[str, Any]) -> None:
+        self._best_effort(self.store.progress, job.id, self.id, progress, metrics)
+        self._best_effort(self.store.publish, job.id,
+                          {"type": "progress", "progress": progress, "metrics": metrics})  # fmt: skip
 
     def _execute(self, job: Job, lost: threading.Event) -> None:
-        self.store.publish(job.id, {"type": "started", "status": "running", "worker": self.id,
-                                    "attempt": job.attempts})  # fmt: skip
+        self._best_effort(self.store.publish, job.id, {
+            "type": "started", "status": "running", "worker": self.id, "attempt": job.attempts})  # fmt: skip
         try:
             runner = {
                 JobKind.train: self._train,
@@ -120,20 +236,23 @@ class Worker:
             outcome, result = runner[job.kind](job, lost)
         except Exception as e:
             log.exception("job %s failed", job.id)
-            msg = f"{type(e).__name__}: {e}"
-            (self.job_dir(job.id)).mkdir(parents=True, exist_ok=True)
-            (self.job_dir(job.id) / "error.txt").write_text(traceback.format_exc())
+            reason = failure_reason(e, self.job_dir(job.id))
+            try:
+                self.job_dir(job.id).mkdir(parents=True, exist_ok=True)
+                (self.job_dir(job.id) / "error.txt").write_text(traceback.format_exc())
+            except OSError:
+                pass  # a full disk: the reason says so, the traceback is in the log
             if not lost.is_set():
-                self.store.finish(job.id, self.id, JobStatus.failed, error=msg)
+                self._until_done(self.store.finish, job.id, self.id, JobStatus.failed, error=reason)
             return
         if outcome == "lost":
             return  # someone else owns the job now
         if outcome == "shutdown":
-            self.store.release(job.id, self.id)
+            self._until_done(self.store.release, job.id, self.id)
         elif outcome == "cancelled":
-            self.store.finish(job.id, self.id, JobStatus.cancelled, result=result)
+            self._until_done(self.store.finish, job.id, self.id, JobStatus.cancelled, result=result)
         else:
-            self.store.finish(job.id, self.id, JobStatus.succeeded, result=result)
+            self._until_done(self.store.finish, job.id, self.id, JobStatus.succeeded, result=result)
 
     def trainer_for(self, config):
         """A warm trainer for this exact config (its compiled chunks are reused)."""
@@ -148,65 +267,80 @@ class Worker:
 
     def _train(self, job: Job, lost: threading.Event):
         from quicknav_core.config import TrainConfig
-        from quicknav_core.train.run import CHECKPOINT_DIR, META_FILE, train_run
+        from quicknav_core.train.run import checkpoint_dir, train_run
 
-        config = TrainConfig.model_validate(job.request["config"])
+        config = TrainConfig.model_validate(self.config_of(job))
         run_dir = self.job_dir(job.id)
-        resume = (run_dir / CHECKPOINT_DIR / META_FILE).exists()
+        resume = checkpoint_dir(run_dir) is not None
+        why = self._stopper(job, lost)
         stop_reason: dict[str, str] = {}
 
         def on_chunk(r) -> bool:
             metrics = {"chunk": r.chunk, "chunks": r.chunks, "env_steps": r.env_steps,
-                       "steps_per_s": r.steps_per_s, **r.metrics}  # fmt: skip
-            self.store.progress(job.id, self.id, r.env_steps / max(r.total_steps, 1), metrics)
-            self.store.publish(job.id, {"type": "progress", "progress": r.env_steps / max(r.total_steps, 1),
-                                        "metrics": metrics})  # fmt: skip
-            reason = self._should_stop(job, lost)
+                       "total_steps": r.total_steps, "steps_per_s": r.steps_per_s, **r.metrics}  # fmt: skip
+            self._report(job, r.env_steps / max(r.total_steps, 1), metrics)
+            reason = why()
             if reason:
                 stop_reason["why"] = reason
                 return True
             return False
 
+        def interrupt() -> bool:
+            reason = why()
+            if reason:
+                stop_reason["why"] = reason
+            return reason is not None
+
         if resume:
-            self.store.publish(job.id, {"type": "resumed", "from_checkpoint": True})
+            self._best_effort(self.store.publish, job.id, {"type": "resumed", "from_checkpoint": True})
         summary = train_run(config, run_dir, callback=on_chunk, resume=resume,
-                            trainer=self.trainer_for(config))  # fmt: skip
-        result = {"env_steps": summary["env_steps"], "chunks_done": summary["chunks_done"],
-                  "chunks": summary["chunks"], "final": summary["final"]}  # fmt: skip
+                            trainer=self.trainer_for(config), max_chunk_s=self.settings.max_chunk_s,
+                            interrupt=interrupt)  # fmt: skip
+        result = {"env_steps": summary["env_steps"], "total_steps": summary["total_steps"],
+                  "chunks_done": summary["chunks_done"], "final": summary["final"]}  # fmt: skip
+        if summary["total_steps"] != config.total_steps:
+            result["note"] = (
+                f"total_steps={config.total_steps:,} is not a whole number of updates"
+                f" (num_envs x num_steps); the run makes {summary['total_steps']:,} env steps"
+            )
         return stop_reason.get("why", "done"), result
 
     def _eval(self, job: Job, lost: threading.Event):
-        from quicknav_core.config import EnvConfig
-        from quicknav_core.evaluate import EvalConfig, agent_for, agent_from_run, evaluate
+        from quicknav_core.config import EvalConfig
+        from quicknav_core.eval.evaluate import EvalStopped, run_eval
 
-        req = job.request
-        cfg = EvalConfig(
-            episodes=req["episodes"], seed=req["seed"], deterministic=not req.get("stochastic")
-        )
-        if req.get("job_id"):
-            agent, env_cfg, _ = agent_from_run(self.job_dir(req["job_id"]))
-        else:
-            env_cfg = EnvConfig.model_validate(req.get("env") or {})
-            agent = agent_for(req["policy"], env_cfg)
-        result, _ = evaluate(env_cfg, agent, cfg, self.job_dir(job.id))
-        self.store.publish(
-            job.id, {"type": "progress", "progress": 1.0, "metrics": result["metrics"]}
-        )
+        cfg = EvalConfig.model_validate(self.config_of(job))
+        run_dir = self.job_dir(cfg.source) if cfg.policy == "trained" else None
+        why = self._stopper(job, lost)
+        stop_reason: dict[str, str] = {}
+
+        def on_batch(done: int, total: int) -> bool:
+            self._report(job, done / total, {"episodes_done": done, "episodes": total})
+            reason = why()
+            if reason:
+                stop_reason["why"] = reason
+            return reason is not None
+
+        try:
+            result, _ = run_eval(cfg, self.job_dir(job.id), run_dir=run_dir, progress=on_batch)
+        except EvalStopped as e:
+            return stop_reason.get("why", "cancelled"), {"episodes_done": e.done, "episodes": e.total}
+        self._report(job, 1.0, result["metrics"])
         return "done", {"agent": result["agent"], "metrics": result["metrics"]}
 
     def _sweep(self, job: Job, lost: threading.Event):
-        from quicknav_core.sweep import SweepConfig, run_sweep
+        from quicknav_core.config import SweepConfig
+        from quicknav_core.sweep import run_sweep
 
-        cfg = SweepConfig.model_validate(job.request["config"])
+        cfg = SweepConfig.model_validate(self.config_of(job))
+        why = self._stopper(job, lost)
         stop_reason: dict[str, str] = {}
 
         def on_progress(p) -> bool:
             metrics = {"finished": p["finished"], "total": p["total"], "best_value": p["best_value"],
                        "best_params": p["best_params"]}  # fmt: skip
-            self.store.progress(job.id, self.id, p["finished"] / p["total"], metrics)
-            self.store.publish(job.id, {"type": "progress", "progress": p["finished"] / p["total"],
-                                        "metrics": metrics})  # fmt: skip
-            reason = self._should_stop(job, lost)
+            self._report(job, p["finished"] / p["total"], metrics)
+            reason = why()
             if reason:
                 stop_reason["why"] = reason
                 return True
@@ -218,18 +352,31 @@ class Worker:
 
 
 def _enable_jax_cache(settings: Settings) -> None:
+    """JAX's persistent compilation cache in the data folder, unless JAX_COMPILATION_CACHE_DIR
+    already names one (an operator's shared cache, or a test session's); and the room-bank cache
+    (a bank is carved once per config, then read back)."""
     import jax
 
-    path = settings.data_dir / "jax-cache"
-    path.mkdir(parents=True, exist_ok=True)
-    jax.config.update("jax_compilation_cache_dir", str(path.resolve()))
+    from quicknav_core.env.rooms import set_bank_cache
+
+    set_bank_cache(settings.data_dir / "room-banks")
+
+    if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
+        jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"])
+    else:
+        path = settings.data_dir / "jax-cache"
+        try:
+            path.mkdir(parents=True, exist_ok=True)
+        except OSError:
+            return  # no cache rather than no worker
+        jax.config.update("jax_compilation_cache_dir", str(path.resolve()))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 
 def start_worker_threads(
     store, settings: Settings, count: int
 ) -> list[tuple[Worker, threading.Thread]]:
-    """In-process workers for `quicknav serve` (the embedded default)."""
+    """In-process workers (tests, and `quicknav serve --worker-threads`)."""
     out = []
     for i in range(count):
         w = Worker(store, settings, worker_id=f"embedded-{os.getpid()}-{i}")
@@ -239,8 +386,8 @@ def start_worker_threads(
     return out
 
 
-def wait_idle(workers, timeout: float = 30.0) -> None:
-    """Stop in-process workers at their next chunk boundary."""
+def stop_workers(workers, timeout: float = 30.0) -> None:
+    """Stop in-process workers at their next unit and wait for them (up to ``timeout``)."""
     for w, _ in workers:
         w.shutdown.set()
     deadline = time.time() + timeout

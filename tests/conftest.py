@@ -1,10 +1,30 @@
-"""Shared fixtures: small environments built once per session (JAX compile time dominates on CPU)."""
+"""Shared fixtures: small environments built once per session (JAX compile time dominates on CPU).
+
+JAX's persistent compilation cache is on for the whole session, in a folder made for it: a program
+compiled once (by a test, a CLI command, a worker subprocess) is loaded, not compiled again, when
+another test builds the same one. The folder starts empty, so a run measures what CI pays.
+"""
 
 from __future__ import annotations
 
+import atexit
+import os
+import shutil
+import tempfile
+
+import jax
 import pytest
 
 from quicknav_core.config import EnvConfig
+
+_CACHE = tempfile.mkdtemp(prefix="quicknav-test-jax-cache-")
+atexit.register(shutil.rmtree, _CACHE, ignore_errors=True)
+# this process and every subprocess a test starts (workers, `quicknav serve`); the CLI's own cache
+# setting reads QUICKNAV_JAX_CACHE, so CLI commands run by tests use the same folder
+os.environ["JAX_COMPILATION_CACHE_DIR"] = _CACHE
+os.environ["QUICKNAV_JAX_CACHE"] = _CACHE
+jax.config.update("jax_compilation_cache_dir", _CACHE)
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.3)
 
 
 @pytest.fixture(scope="session")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from quicknav_client.proto.quicknav.v1 import rollout_pb2 as pb
@@ -37,7 +39,7 @@ def decode(tensor: pb.Tensor, field: str = "tensor") -> np.ndarray:
     shape = tuple(int(s) for s in tensor.shape)
     if any(s < 0 for s in shape):
         raise TensorError(f"{field}.shape={list(shape)} has a negative dimension")
-    count = int(np.prod(shape, dtype=np.int64))
+    count = math.prod(shape)  # Python integers: no overflow for absurd shapes
     if count * dt.itemsize != len(tensor.data):
         raise TensorError(
             f"{field}: {len(tensor.data)} bytes do not hold a {tensor.dtype} array of shape"

@@ -14,7 +14,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from quicknav_core.config import EnvConfig, Split
-from quicknav_core.env.quicknav import _fmix32
+from quicknav_core.env.rng import step_keys
+
+__all__ = ["BatchedEnv", "StepResult", "batched_step", "env_and_params", "step_keys"]
 
 _COMPILED: dict[Any, tuple[Any, Any]] = {}
 _PARAMS: dict[Any, Any] = {}
@@ -33,17 +35,6 @@ class StepResult:
     final_obs: np.ndarray  # (k, obs_dim) float32
 
 
-def step_keys(counter: jax.Array, num_envs: int) -> jax.Array:
-    """Per-env keys for one step: raw uint32 pairs (hash of the session word and step, env index).
-
-    The dynamics are deterministic; the key only seeds an auto-reset, and the env hashes key data
-    itself (``hash_key_bits``), so a Threefry split of ``num_envs`` keys every step is not needed.
-    """
-    word = _fmix32(counter[0] ^ _fmix32(counter[1] * jnp.uint32(0x9E3779B9) + jnp.uint32(1)))
-    i = jnp.arange(num_envs, dtype=jnp.uint32)
-    return jnp.stack([jnp.broadcast_to(word, (num_envs,)), i], axis=-1)
-
-
 def batched_step(env, keys, state, action, params, reset_capacity: int | None = None):
     """``vmap(env.step)`` with auto-reset and final observations, casting the lidar ~once per env.
 
@@ -56,14 +47,14 @@ def batched_step(env, keys, state, action, params, reset_capacity: int | None = 
     """
     n = action.shape[0]
     k = reset_capacity if reset_capacity is not None else max(8, n // 16)
-    moved, reward, info = jax.vmap(env._transition, in_axes=(0, 0, 0, None))(
+    moved, reward, info = jax.vmap(env.transition, in_axes=(0, 0, 0, None))(
         keys, state, action, params
     )
     done = info["terminated"] | info["truncated"]
-    moved = jax.vmap(env._with_lidar, in_axes=(0, None))(moved, params)
+    moved = jax.vmap(env.with_lidar, in_axes=(0, None))(moved, params)
     final = jax.vmap(env.get_obs, in_axes=(0, None))(moved, params)
-    fresh = jax.vmap(env._spawn, in_axes=(0, None))(keys, params)
-    cast_all = lambda f: jax.vmap(env._with_lidar, in_axes=(0, None))(f, params)  # noqa: E731
+    fresh = jax.vmap(env.spawn, in_axes=(0, None))(keys, params)
+    cast_all = lambda f: jax.vmap(env.with_lidar, in_axes=(0, None))(f, params)  # noqa: E731
     if k >= n:
         fresh = cast_all(fresh)
     else:

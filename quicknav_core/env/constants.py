@@ -1,4 +1,14 @@
-"""Codes shared by the JAX env, the NumPy twin, rendering and clients (no magic numbers)."""
+"""Constants and layouts shared by the JAX env, the NumPy twin, rendering and clients.
+
+NumPy only (no JAX, no config import): every number the two implementations must agree on lives
+here once.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
 
 # What a lidar beam reports it hit.
 HIT_NONE = 0  # nothing within lidar_max_range
@@ -8,3 +18,49 @@ HIT_GOAL = 2
 # Observation layout (B = lidar_beams): see quicknav_core.env.quicknav.QuickNavEnv.
 POSE_DIM = 4  # x / room_size, y / room_size, sin(theta), cos(theta)
 GOAL_DIM = 5  # goal x / room_size, goal y / room_size, distance / room_size, sin, cos of bearing
+
+# Room carving moves (d_row, d_col): up, down, left, right.
+CARVE_MOVES = np.array([[1, 0], [-1, 0], [0, -1], [0, 1]], dtype=np.int32)
+
+# PRNG stream of each room bank: train and test rooms never share a stream.
+SPLIT_STREAM = {"train": 0, "test": 1}
+
+# A distance no real one reaches ("never" for ray hits).
+BIG = 1e30
+
+
+def check_split(split: str) -> str:
+    """``split`` if it names a room bank, else a ValueError saying which ones exist."""
+    if split not in SPLIT_STREAM:
+        raise ValueError(f"split={split!r}: allowed values are 'train' and 'test'")
+    return split
+
+
+def beam_angles(num_beams: int, fov_deg: float) -> np.ndarray:
+    """Beam angles relative to the heading, float32 radians, counter-clockwise.
+
+    A 360° lidar spreads beams evenly around the robot starting at the heading; a narrower one
+    spreads them evenly from -fov/2 to +fov/2, both ends included (one beam looks straight ahead).
+    """
+    i = np.arange(num_beams, dtype=np.float64)
+    if fov_deg >= 360.0:
+        angles = 2.0 * np.pi * i / num_beams
+    elif num_beams == 1:
+        angles = np.zeros(1)
+    else:
+        fov = np.deg2rad(fov_deg)
+        angles = -0.5 * fov + fov * i / (num_beams - 1)
+    return angles.astype(np.float32)
+
+
+def observation_bounds(config: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Elementwise (low, high) of the observation vector of an ``EnvConfig``, float32."""
+    b = config.lidar_beams
+    low = [0.0, 0.0, -1.0, -1.0] + [0.0] * (3 * b)
+    high = [1.0, 1.0, 1.0, 1.0] + [1.0] * (3 * b)
+    if config.observe_goal:
+        # goal x, goal y, distance (at most the room diagonal), sin and cos of the bearing
+        low += [0.0, 0.0, 0.0, -1.0, -1.0]
+        high += [1.0, 1.0, float(np.sqrt(2.0)), 1.0, 1.0]
+    assert len(low) == POSE_DIM + 3 * b + (GOAL_DIM if config.observe_goal else 0)
+    return np.asarray(low, np.float32), np.asarray(high, np.float32)

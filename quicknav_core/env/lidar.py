@@ -13,29 +13,12 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from quicknav_core.env.bits import pack_rows, read_bit
-from quicknav_core.env.constants import HIT_GOAL, HIT_NONE, HIT_WALL
+from quicknav_core.env.constants import BIG as _BIG
+from quicknav_core.env.constants import HIT_GOAL, HIT_NONE, HIT_WALL, beam_angles
 
-_BIG = 1e30
-
-
-def beam_angles(num_beams: int, fov_deg: float) -> np.ndarray:
-    """Beam angles relative to the heading, radians, counter-clockwise.
-
-    A 360° lidar spreads beams evenly around the robot starting at the heading; a narrower one
-    spreads them evenly from -fov/2 to +fov/2, both ends included (one beam looks straight ahead).
-    """
-    i = np.arange(num_beams, dtype=np.float64)
-    if fov_deg >= 360.0:
-        angles = 2.0 * np.pi * i / num_beams
-    elif num_beams == 1:
-        angles = np.zeros(1)
-    else:
-        fov = np.deg2rad(fov_deg)
-        angles = -0.5 * fov + fov * i / (num_beams - 1)
-    return angles.astype(np.float32)
+__all__ = ["beam_angles", "cast_lidar", "cast_lidar_bits", "lidar_is_paired", "ray_disc"]
 
 
 def _entered_bits(origin_a: jax.Array, line_bits: jax.Array) -> jax.Array:

@@ -17,13 +17,21 @@ from typing import Any, ClassVar
 import gymnasium as gym
 import numpy as np
 
-from quicknav_core.config import EnvConfig
-from quicknav_core.env.constants import HIT_GOAL, HIT_NONE, HIT_WALL
+from quicknav_core.config.env import EnvConfig
+from quicknav_core.env.constants import (
+    BIG,
+    CARVE_MOVES,
+    HIT_GOAL,
+    HIT_NONE,
+    HIT_WALL,
+    SPLIT_STREAM,
+    beam_angles,
+    check_split,
+    observation_bounds,
+)
 
 f32 = np.float32
-_BIG = f32(1e30)
-_MOVES = np.array([[1, 0], [-1, 0], [0, -1], [0, 1]], dtype=np.int64)
-_SPLIT_STREAM = {"train": 0, "test": 1}
+_BIG = f32(BIG)
 
 
 def carve_room_np(
@@ -37,7 +45,7 @@ def carve_room_np(
     while free < target and step < step_cap:
         if rng.random() < return_prob:
             pos = centre.copy()
-        nxt = pos + _MOVES[rng.integers(4)]
+        nxt = pos + CARVE_MOVES[rng.integers(4)]
         if np.all((nxt >= 1) & (nxt <= grid_size - 2)):
             pos = nxt
         if walls[pos[0], pos[1]]:
@@ -45,19 +53,6 @@ def carve_room_np(
             free += 1
         step += 1
     return walls
-
-
-def beam_angles_np(num_beams: int, fov_deg: float) -> np.ndarray:
-    """Beam angles relative to the heading (see ``lidar.beam_angles``), float32 radians."""
-    i = np.arange(num_beams, dtype=np.float64)
-    if fov_deg >= 360.0:
-        angles = 2.0 * np.pi * i / num_beams
-    elif num_beams == 1:
-        angles = np.zeros(1)
-    else:
-        fov = np.deg2rad(fov_deg)
-        angles = -0.5 * fov + fov * i / (num_beams - 1)
-    return angles.astype(f32)
 
 
 def cast_lidar_np(
@@ -134,18 +129,14 @@ class QuickNavNumpyEnv(gym.Env):
         rooms: np.ndarray | None = None,
     ):
         self.config = config or EnvConfig()
-        if split not in _SPLIT_STREAM:
-            raise ValueError(f"split={split!r}: allowed values are 'train' and 'test'")
-        self.split = split
+        self.split = check_split(split)
         self.render_mode = render_mode
-        from quicknav_core.env.bounds import observation_bounds
-
         low, high = observation_bounds(self.config)
         self.observation_space = gym.spaces.Box(low, high, dtype=np.float32)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (2,), dtype=np.float32)
         c = self.config
         self._cell = f32(c.room_size / c.grid_size)
-        self._angles = beam_angles_np(c.lidar_beams, c.lidar_fov_deg)
+        self._angles = beam_angles(c.lidar_beams, c.lidar_fov_deg)
         self._rooms: dict[int, np.ndarray] = {}
         self._bank_size = self.config.train_rooms if split == "train" else self.config.test_rooms
         if rooms is not None:
@@ -163,7 +154,7 @@ class QuickNavNumpyEnv(gym.Env):
         """Room ``index`` of the bank: a given one, or carved on first use (NumPy RNG streams)."""
         if index not in self._rooms:
             c = self.config
-            rng = np.random.default_rng([c.room_seed, _SPLIT_STREAM[self.split], index])
+            rng = np.random.default_rng([c.room_seed, SPLIT_STREAM[self.split], index])
             self._rooms[index] = carve_room_np(
                 rng, c.grid_size, c.carve_target, c.carve_step_cap, c.return_prob
             )

@@ -3,22 +3,24 @@
 from __future__ import annotations
 
 from functools import cached_property, partial
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from gymnax.environments import environment, spaces
 
-from quicknav_core.config import EnvConfig, Split
 from quicknav_core.env.bits import num_words, pack_rows, pack_rows_np, read_bit, set_bit
-from quicknav_core.env.bounds import observation_bounds
-from quicknav_core.env.constants import HIT_GOAL, HIT_WALL
+from quicknav_core.env.constants import HIT_GOAL, HIT_WALL, check_split, observation_bounds
 from quicknav_core.env.dynamics import drive, move_with_sliding, wheel_command
 from quicknav_core.env.lidar import cast_lidar_bits
-from quicknav_core.env.reward import reward_terms, total_reward
+from quicknav_core.env.reward import reward_numbers, reward_terms, total_reward
+from quicknav_core.env.rng import hash_key_bits, uniform_from_bits
 from quicknav_core.env.rooms import free_cell_table, make_room_bank
 from quicknav_core.env.types import EnvParams, EnvState
+
+if TYPE_CHECKING:  # pragma: no cover - the env reads its config's fields, never imports the module
+    from quicknav_core.config import EnvConfig, Split
 
 
 class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
@@ -37,6 +39,10 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
     Termination: goal reached (centre within goal_radius). Truncation: ``max_steps`` steps.
     ``step`` auto-resets: a finished episode's next observation is the first of a new episode, and
     ``info["final_obs"]`` holds the last observation of the finished one (if ``final_obs``).
+
+    Public step phases, for batched steppers and trainers that compose their own step:
+    ``transition`` (drive, collide, reward; lidar left stale), ``spawn`` (a fresh episode, lidar
+    not cast) and ``with_lidar`` (cast the lidar for a state's pose).
 
     >>> env, params = EnvConfig(grid_size=8).build("train")
     >>> obs, state = env.reset(jax.random.PRNGKey(0), params)
@@ -84,31 +90,32 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         action: jax.Array,
         params: EnvParams | None = None,
     ) -> tuple[jax.Array, EnvState, jax.Array, jax.Array, dict[str, Any]]:
-        """Step with auto-reset, casting the lidar once for the pose that is actually kept."""
+        """Step with auto-reset: the lidar is cast for the kept pose (fresh or moved), and once more
+        for the pre-reset pose when ``final_obs`` is on (under vmap both casts run for every env)."""
         if params is None:
             params = self.default_params
         # The dynamics are deterministic: the key only feeds the reset.
-        moved, reward, info = self._transition(key, state, action, params)
+        moved, reward, info = self.transition(key, state, action, params)
         done = info["terminated"] | info["truncated"]
-        fresh = self._spawn(key, params)
+        fresh = self.spawn(key, params)
         kept = jax.tree.map(lambda a, b: jax.lax.select(done, a, b), fresh, moved)
-        kept = self._with_lidar(kept, params)
+        kept = self.with_lidar(kept, params)
         if self.final_obs:
-            info["final_obs"] = self.get_obs(self._with_lidar(moved, params), params)
+            info["final_obs"] = self.get_obs(self.with_lidar(moved, params), params)
         return self.get_obs(kept, params), kept, reward, done, info
 
     def step_env(
         self, key: jax.Array, state: EnvState, action: jax.Array, params: EnvParams
     ) -> tuple[jax.Array, EnvState, jax.Array, jax.Array, dict[str, Any]]:
         """One transition without auto-reset."""
-        moved, reward, info = self._transition(key, state, action, params)
-        moved = self._with_lidar(moved, params)
+        moved, reward, info = self.transition(key, state, action, params)
+        moved = self.with_lidar(moved, params)
         done = info["terminated"] | info["truncated"]
         return self.get_obs(moved, params), moved, reward, done, info
 
     def reset_env(self, key: jax.Array, params: EnvParams) -> tuple[jax.Array, EnvState]:
         """Pick a room from the bank, spawn robot and goal, cast the first lidar scan."""
-        state = self._with_lidar(self._spawn(key, params), params)
+        state = self.with_lidar(self.spawn(key, params), params)
         return self.get_obs(state, params), state
 
     def load_state(
@@ -134,7 +141,7 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         state = self._episode_start(
             pos, theta, goal, pack_rows(walls.T), pack_rows(walls), jnp.int32(room_index), rc
         )
-        state = self._with_lidar(state, params)
+        state = self.with_lidar(state, params)
         return self.get_obs(state, params), state
 
     def get_obs(self, state: EnvState, params: EnvParams | None = None, key=None) -> jax.Array:
@@ -191,13 +198,13 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
     def num_actions(self) -> int:
         return 2
 
-    # ------------------------------------------------------------------ internals
-    def _spawn(self, key: jax.Array, params: EnvParams) -> EnvState:
+    # ------------------------------------------------------------------ step phases
+    def spawn(self, key: jax.Array, params: EnvParams) -> EnvState:
         """A fresh episode (lidar not yet cast): room, start pose and the farthest goal candidate."""
         g, k = self.grid_size, self.config.goal_candidates
         cell = params.room_size / g
         # One PRNG call for everything a reset draws (the reset runs every step under vmap).
-        u = _uniform_from_bits(hash_key_bits(key, 5 + k))
+        u = uniform_from_bits(hash_key_bits(key, 5 + k))
         u_room, u_start, jitter_u, u_head, u_goal = u[0], u[1], u[2:4], u[4], u[5:]
         n_rooms = params.rooms.shape[0]
         room = jnp.minimum(jnp.floor(u_room * n_rooms).astype(jnp.int32), n_rooms - 1)
@@ -242,10 +249,10 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
             time=jnp.int32(0),
         )
 
-    def _transition(
+    def transition(
         self, key: jax.Array, state: EnvState, action: jax.Array, params: EnvParams
     ) -> tuple[EnvState, jax.Array, dict[str, Any]]:
-        """Drive, collide/slide, count revisits, reward; lidar is left stale for the caller."""
+        """Drive, collide/slide, count revisits, reward; the lidar is left stale for the caller."""
         del key  # the dynamics are deterministic
         g = self.grid_size
         cell = params.room_size / g
@@ -288,7 +295,7 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         }
         return moved, total_reward(terms), info
 
-    def _with_lidar(self, state: EnvState, params: EnvParams) -> EnvState:
+    def with_lidar(self, state: EnvState, params: EnvParams) -> EnvState:
         """State with the lidar scan of its current pose."""
         ranges, hits = cast_lidar_bits(
             state.pos,
@@ -305,44 +312,10 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         return state.replace(lidar_ranges=ranges, lidar_hits=hits)
 
 
-def _fmix32(x: jax.Array) -> jax.Array:
-    """MurmurHash3's 32-bit finaliser: a cheap bijection with full avalanche."""
-    x = x ^ jnp.right_shift(x, jnp.uint32(16))
-    x = x * jnp.uint32(0x85EBCA6B)
-    x = x ^ jnp.right_shift(x, jnp.uint32(13))
-    x = x * jnp.uint32(0xC2B2AE35)
-    return x ^ jnp.right_shift(x, jnp.uint32(16))
-
-
-def hash_key_bits(key: jax.Array, count: int) -> jax.Array:
-    """``count`` uint32 words derived from a PRNG key by hashing its data with a counter.
-
-    A reset runs for every env on every step under vmap (gymnax's auto-reset is a select), so its
-    randomness must be cheap: this costs a few integer ops per word instead of a Threefry block,
-    and is still a deterministic function of the key (same key, same reset).
-    """
-    data = jax.random.key_data(key) if jnp.issubdtype(key.dtype, jax.dtypes.prng_key) else key
-    data = data.reshape(-1).astype(jnp.uint32)
-    mixed = data[0]
-    for word in data[1:]:
-        mixed = _fmix32(mixed ^ _fmix32(word + jnp.uint32(0x9E3779B9)))
-    i = jnp.arange(count, dtype=jnp.uint32)
-    return _fmix32(mixed ^ _fmix32(i * jnp.uint32(0x9E3779B9) + jnp.uint32(0x632BE5AB)))
-
-
-def _uniform_from_bits(bits: jax.Array) -> jax.Array:
-    """uint32 random bits -> float32 uniform in [0, 1) (23 mantissa bits)."""
-    one_to_two = jax.lax.bitcast_convert_type(
-        jnp.right_shift(bits, jnp.uint32(9)) | jnp.uint32(0x3F800000), jnp.float32
-    )
-    return one_to_two - 1.0
-
-
 def make_params(config: EnvConfig, split: Split = "train") -> EnvParams:
     """EnvParams for ``config`` holding the ``split`` room bank."""
-    rooms = make_room_bank(config, split)
+    rooms = make_room_bank(config, check_split(split))
     free, counts = free_cell_table(rooms)
-    r = config.reward
     f32 = np.float32
     return EnvParams(
         rooms=jnp.asarray(rooms),
@@ -358,19 +331,12 @@ def make_params(config: EnvConfig, split: Split = "train") -> EnvParams:
         lidar_max_range=f32(config.lidar_max_range),
         goal_radius=f32(config.goal_radius),
         max_steps_in_episode=np.int32(config.max_steps),
-        step_penalty=f32(r.step_penalty),
-        collision_penalty=f32(r.collision_penalty),
-        cycle_penalty=f32(r.cycle_penalty),
-        progress_reward=f32(r.progress_reward),
-        goal_reward=f32(r.goal_reward),
-        cycle_cap=np.int32(r.cycle_cap),
-        exploration_reward=f32(r.exploration_reward),
-        progress_linear=np.bool_(r.progress == "linear"),
+        **reward_numbers(config.reward),
     )
 
 
 def build_env(config: EnvConfig, split: Split = "train") -> tuple[QuickNavEnv, EnvParams]:
     """The env and its params for one split (``EnvConfig.build`` calls this)."""
     env = QuickNavEnv(config)
-    params = env.default_params if split == "train" else make_params(config, split)
+    params = env.default_params if split == "train" else make_params(config, check_split(split))
     return env, params

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import matplotlib
 
@@ -20,13 +20,14 @@ from matplotlib.axes import Axes
 from matplotlib.patches import Circle, FancyArrow
 from PIL import Image
 
-from quicknav_core.config import EnvConfig
-from quicknav_core.env.constants import HIT_GOAL, HIT_WALL
-from quicknav_core.env.numpy_env import beam_angles_np
+from quicknav_core.env.constants import HIT_GOAL, HIT_NONE, HIT_WALL, beam_angles
+
+if TYPE_CHECKING:  # pragma: no cover
+    from quicknav_core.config import EnvConfig
 
 WALL_COLOUR = "#3b3b3b"
 FREE_COLOUR = "#f4f1ea"
-RAY_COLOURS = {0: "#9e9e9e", HIT_WALL: "#d62728", HIT_GOAL: "#2ca02c"}  # grey / red / green
+RAY_COLOURS = {HIT_NONE: "#9e9e9e", HIT_WALL: "#d62728", HIT_GOAL: "#2ca02c"}  # grey / red / green
 ROBOT_COLOUR = "#1f77b4"
 GOAL_COLOUR = "#2ca02c"
 PATH_COLOUR = "#ff7f0e"
@@ -83,7 +84,7 @@ def draw_scene(
         ax.plot(*start, marker="o", color=PATH_COLOUR, ms=5)
     pos, theta = snap["pos"], float(snap["theta"])
     if rays and "lidar_ranges" in snap:
-        angles = theta + beam_angles_np(config.lidar_beams, config.lidar_fov_deg)
+        angles = theta + beam_angles(config.lidar_beams, config.lidar_fov_deg)
         for ang, rng_m, hit in zip(angles, snap["lidar_ranges"], snap["lidar_hits"], strict=True):
             end = pos + rng_m * np.array([np.cos(ang), np.sin(ang)])
             ax.plot([pos[0], end[0]], [pos[1], end[1]], color=RAY_COLOURS[int(hit)], lw=0.8)
@@ -117,8 +118,25 @@ def render_frame(
     ax = fig.add_axes((0.02, 0.02, 0.96, 0.90 if title else 0.96))
     draw_scene(ax, snap, config, trajectory=trajectory)
     if title:
-        ax.set_title(title, fontsize=9)
+        fit_title(fig, ax, title)
     return _figure_to_rgb(fig)
+
+
+def fit_title(fig, ax: Axes, title: str, largest: float = 9.0, smallest: float = 6.0) -> None:
+    """A title that fits the figure's width: a smaller font, then two lines, never cut off."""
+    renderer = fig.canvas.get_renderer()
+    room = 0.98 * fig.bbox.width
+    text = ax.set_title(title, fontsize=largest)
+    size = largest
+    while text.get_window_extent(renderer).width > room and size > smallest:
+        size -= 0.5
+        text.set_fontsize(size)
+    if text.get_window_extent(renderer).width > room:
+        import textwrap
+
+        width = max(8, int(len(title) * room / text.get_window_extent(renderer).width))
+        text.set_text("\n".join(textwrap.wrap(title, width)[:2]))
+        ax.set_position((0.02, 0.02, 0.96, 0.84))
 
 
 def save_png(rgb: np.ndarray, path: str | Path) -> Path:

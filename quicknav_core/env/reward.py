@@ -1,11 +1,33 @@
-"""The paper's reward, term by term."""
+"""The paper's reward, term by term, and the reward weights as traced ``EnvParams`` numbers."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from quicknav_core.env.types import EnvParams
+
+
+def reward_numbers(reward: Any) -> dict[str, np.ndarray]:
+    """The ``EnvParams`` fields of a ``RewardConfig``: one place maps config to traced numbers.
+
+    Every traced field of ``RewardConfig`` has its entry here (a test checks it), so trials that
+    differ only in reward weights can train side by side on one compiled program.
+    """
+    f32 = np.float32
+    return {
+        "step_penalty": f32(reward.step_penalty),
+        "collision_penalty": f32(reward.collision_penalty),
+        "cycle_penalty": f32(reward.cycle_penalty),
+        "progress_reward": f32(reward.progress_reward),
+        "goal_reward": f32(reward.goal_reward),
+        "cycle_cap": np.int32(reward.cycle_cap),
+        "exploration_reward": f32(reward.exploration_reward),
+        "progress_linear": np.bool_(reward.progress == "linear"),
+    }
 
 
 def reward_terms(

@@ -13,18 +13,21 @@ train room are dropped, so evaluation is on rooms never seen in training.
 
 from __future__ import annotations
 
+import hashlib
+import json
+import os
 from functools import partial
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from quicknav_core.config import EnvConfig, Split
+from quicknav_core.env.constants import CARVE_MOVES, SPLIT_STREAM, check_split
 
-# Carving moves (d_row, d_col): up, down, left, right.
-_MOVES = np.array([[1, 0], [-1, 0], [0, -1], [0, 1]], dtype=np.int32)
-
-_SPLIT_STREAM = {"train": 0, "test": 1}
+if TYPE_CHECKING:  # pragma: no cover
+    from quicknav_core.config import EnvConfig, Split
 
 
 @partial(jax.jit, static_argnames=("grid_size", "target", "step_cap"))
@@ -34,7 +37,7 @@ def carve_room(
     """Carve one room. Returns ``(walls (grid, grid) bool, number of carving steps used)``."""
     centre = jnp.array([grid_size // 2, grid_size // 2], dtype=jnp.int32)
     walls = jnp.ones((grid_size, grid_size), dtype=bool).at[centre[0], centre[1]].set(False)
-    moves = jnp.asarray(_MOVES)
+    moves = jnp.asarray(CARVE_MOVES)
 
     def cond(carry):
         _, _, free, step = carry
@@ -68,51 +71,125 @@ def carve_bank(
 
 def _carve_numbered(config: EnvConfig, split: Split, start: int, count: int) -> np.ndarray:
     """Rooms ``start .. start+count-1`` of a split's stream; room i always has the same layout."""
-    base = jax.random.fold_in(jax.random.PRNGKey(config.room_seed), _SPLIT_STREAM[split])
+    base = jax.random.fold_in(jax.random.PRNGKey(config.room_seed), SPLIT_STREAM[split])
     keys = jax.vmap(lambda i: jax.random.fold_in(base, i))(jnp.arange(start, start + count))
     walls = carve_bank(
         keys, config.grid_size, config.carve_target, config.carve_step_cap, config.return_prob
     )
-    walls = np.asarray(walls)
-    free = (~walls).sum(axis=(1, 2))
-    short = np.flatnonzero(free < config.carve_target)
-    if short.size:
+    return np.asarray(walls)
+
+
+def _first_rooms(config: EnvConfig, split: Split, count: int, skip: set[bytes] | None = None,
+                 batch: int | None = None) -> np.ndarray:  # fmt: skip
+    """The first ``count`` rooms of a split's stream that reached the carve target (and are not
+    in ``skip``). A room the walk left short (it ran into the step cap) is passed over, so a bank
+    is the same whenever every room makes it; ``EnvConfig`` refuses configs where many would not."""
+    kept: list[np.ndarray] = []
+    start, batch = 0, batch or count
+    short = repeated = 0
+    while len(kept) < count and start < 2 * count + 256:
+        for room in _carve_numbered(config, split, start, batch):
+            if (~room).sum() < config.carve_target:
+                short += 1
+            elif skip is not None and room.tobytes() in skip:
+                repeated += 1
+            else:
+                kept.append(room)
+                if len(kept) == count:
+                    break
+        start += batch
+    if len(kept) < count:
+        if repeated >= short:
+            raise ValueError(
+                f"grid_size={config.grid_size} with carve_fraction={config.carve_fraction} has too"
+                f" few distinct layouts for {config.test_rooms} held-out test rooms disjoint from"
+                f" the {config.train_rooms} train rooms (found {len(kept)}); use a larger"
+                " grid_size, a lower carve_fraction, or fewer train_rooms/test_rooms"
+            )
         raise ValueError(
-            f"carve_max_steps={config.carve_step_cap} stopped {short.size} room(s) short of the"
-            f" carve target ({config.carve_target} free cells); raise carve_max_steps or lower"
+            f"carve_max_steps={config.carve_step_cap} stopped {short} of {start} room(s) short of"
+            f" the carve target ({config.carve_target} free cells); raise carve_max_steps or lower"
             " return_prob (the walker rarely gets far from the centre on large grids)"
         )
-    return walls
+    return np.stack(kept)
 
 
 def make_room_bank(config: EnvConfig, split: Split) -> np.ndarray:
     """Generate the ``split`` room bank: (rooms, grid, grid) bool, ``True`` = wall.
 
     The test bank skips any layout that also occurs in the train bank; if the grid is so small that
-    not enough distinct held-out layouts exist, a ``ValueError`` says so.
+    not enough distinct held-out layouts exist, a ``ValueError`` says so. With a bank cache set
+    (``set_bank_cache``), a bank built once is read back instead of carved again.
     """
+    check_split(split)
+    cached = _cache_read(config, split)
+    if cached is not None:
+        return cached
     if split == "train":
-        return _carve_numbered(config, "train", 0, config.train_rooms)
-    if split != "test":
-        raise ValueError(f"split={split!r}: allowed values are 'train' and 'test'")
-    seen = {room.tobytes() for room in _carve_numbered(config, "train", 0, config.train_rooms)}
-    kept: list[np.ndarray] = []
-    start, batch = 0, max(64, config.test_rooms)
-    while len(kept) < config.test_rooms and start < 4 * config.test_rooms + 256:
-        for room in _carve_numbered(config, "test", start, batch):
-            if room.tobytes() not in seen:
-                kept.append(room)
-                if len(kept) == config.test_rooms:
-                    break
-        start += batch
-    if len(kept) < config.test_rooms:
-        raise ValueError(
-            f"grid_size={config.grid_size} with carve_fraction={config.carve_fraction} has too few"
-            f" distinct layouts for {config.test_rooms} held-out test rooms disjoint from the"
-            f" {config.train_rooms} train rooms (found {len(kept)}); use a larger grid_size, a"
-            " lower carve_fraction, or fewer train_rooms/test_rooms"
-        )
-    return np.stack(kept)
+        bank = _first_rooms(config, "train", config.train_rooms)
+    else:
+        train = make_room_bank(config, "train")
+        seen = {room.tobytes() for room in train}
+        bank = _first_rooms(config, "test", config.test_rooms, skip=seen,
+                            batch=max(64, config.test_rooms))  # fmt: skip
+    _cache_write(config, split, bank)
+    return bank
+
+
+# --------------------------------------------------------------------------- bank cache
+_BANK_CACHE: Path | None = None
+# bumped whenever carving changes what a config's bank holds
+GENERATOR_VERSION = 1
+
+
+def set_bank_cache(folder: Path | str | None) -> None:
+    """Keep built room banks in ``folder`` (None: no disk cache). A process that serves many jobs
+    or rollout sessions (the service's workers) sets it once; library code never does."""
+    global _BANK_CACHE
+    _BANK_CACHE = Path(folder) if folder is not None else None
+
+
+def bank_key(config: EnvConfig, split: Split) -> str:
+    """What a bank depends on, as a file-name-safe digest."""
+    fields = ("grid_size", "carve_fraction", "return_prob", "carve_step_cap", "room_seed",
+              "train_rooms", "test_rooms")  # fmt: skip
+    text = json.dumps([GENERATOR_VERSION, split, *(getattr(config, f) for f in fields)])
+    return hashlib.sha256(text.encode()).hexdigest()[:32]
+
+
+def _cache_path(config: EnvConfig, split: Split) -> Path | None:
+    if _BANK_CACHE is None:
+        return None
+    return _BANK_CACHE / f"bank-{config.grid_size}-{split}-{bank_key(config, split)}.npz"
+
+
+def _cache_read(config: EnvConfig, split: Split) -> np.ndarray | None:
+    path = _cache_path(config, split)
+    if path is None or not path.exists():
+        return None
+    try:
+        with np.load(path) as data:
+            bits, shape = data["bits"], tuple(int(v) for v in data["shape"])
+        bank = np.unpackbits(bits, count=int(np.prod(shape))).reshape(shape).astype(bool)
+    except (OSError, ValueError, KeyError):
+        return None  # damaged: carve it again
+    g = config.grid_size
+    expected = config.train_rooms if split == "train" else config.test_rooms
+    return bank if bank.shape == (expected, g, g) else None
+
+
+def _cache_write(config: EnvConfig, split: Split, bank: np.ndarray) -> None:
+    path = _cache_path(config, split)
+    if path is None:
+        return
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+        with open(tmp, "wb") as f:
+            np.savez(f, bits=np.packbits(bank.reshape(-1)), shape=np.asarray(bank.shape))
+        os.replace(tmp, path)
+    except OSError:
+        pass  # a cache that cannot be written (a full disk) only costs a rebuild
 
 
 def free_cell_table(rooms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -8,12 +8,11 @@ Memoryless networks use an empty carry. ``make_network(NetworkConfig, action_dim
 """
 
 from quicknav_core.networks.common import PolicyOutput, gaussian_entropy, gaussian_log_prob
-from quicknav_core.networks.factory import make_network, network_is_recurrent
+from quicknav_core.networks.factory import make_network
 
 __all__ = [
     "PolicyOutput",
     "gaussian_entropy",
     "gaussian_log_prob",
     "make_network",
-    "network_is_recurrent",
 ]

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import flax.linen as nn
 
-from quicknav_core.config import GTrXLNetwork, LSTMNetwork, MLPNetwork
+from quicknav_core.config.train import GTrXLNetwork, LSTMNetwork, MLPNetwork
 from quicknav_core.networks.gtrxl import GTrXLPolicy
 from quicknav_core.networks.lstm import LSTMPolicy
 from quicknav_core.networks.mlp import MLPPolicy
@@ -31,8 +31,3 @@ def make_network(config: MLPNetwork | LSTMNetwork | GTrXLNetwork, action_dim: in
             learned_log_std=config.learned_log_std, init_log_std=config.init_log_std,
         )  # fmt: skip
     raise TypeError(f"unknown network config {type(config).__name__}")
-
-
-def network_is_recurrent(config) -> bool:
-    """Whether the network carries memory between steps."""
-    return not (isinstance(config, MLPNetwork) and config.memory_size == 0)

@@ -1,6 +1,6 @@
-"""Trainers (rejax PPO/SAC/TD3, QuickNav's recurrent PPO), run folders and presets.
+"""Trainers (rejax PPO/SAC/TD3, QuickNav's recurrent PPO), batched trials and run folders.
 
-Names are imported lazily so that reading presets does not pull in JAX.
+Names are imported lazily so that importing the package does not pull in JAX.
 """
 
 from __future__ import annotations
@@ -9,8 +9,9 @@ import importlib
 from typing import Any
 
 _EXPORTS = {
-    "PRESETS": "quicknav_core.train.presets",
-    "get_preset": "quicknav_core.train.presets",
+    "PRESETS": "quicknav_core.config.presets",
+    "get_preset": "quicknav_core.config.presets",
+    "train_batch": "quicknav_core.train.batched",
     "load_run": "quicknav_core.train.run",
     "read_metrics": "quicknav_core.train.run",
     "train_run": "quicknav_core.train.run",

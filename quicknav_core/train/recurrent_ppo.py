@@ -14,6 +14,7 @@ in the traced ``PPOHyper`` inside the state, so many of them can train side by s
 
 from __future__ import annotations
 
+import dataclasses
 from functools import partial
 from typing import Any
 
@@ -29,7 +30,7 @@ from quicknav_core.train.stats import EpisodeStats
 
 @struct.dataclass
 class PPOHyper:
-    """Traced PPO hyperparameters."""
+    """Traced PPO hyperparameters: exactly the fields of ``PPOConfig`` marked ``TRACED``."""
 
     learning_rate: jax.Array
     gamma: jax.Array
@@ -41,11 +42,7 @@ class PPOHyper:
 
     @classmethod
     def from_config(cls, algo) -> PPOHyper:
-        f = jnp.float32
-        return cls(
-            f(algo.learning_rate), f(algo.gamma), f(algo.gae_lambda), f(algo.clip_eps),
-            f(algo.ent_coef), f(algo.vf_coef), f(algo.max_grad_norm),
-        )  # fmt: skip
+        return cls(**{f.name: jnp.float32(getattr(algo, f.name)) for f in dataclasses.fields(cls)})
 
 
 @struct.dataclass

@@ -3,17 +3,23 @@
 A run folder holds
   config.json          the exact TrainConfig
   metrics.jsonl        one JSON line per chunk (env steps, wall time, steps/s, losses, episode stats)
-  checkpoint/          state.msgpack (flax msgpack, no pickle) and meta.json, written atomically
+  checkpoint/          state.msgpack (flax msgpack, no pickle) and meta.json
   learning_curve.png   return and success rate against env steps
-The same ``train_run`` serves the CLI (a progress bar) and the service worker (progress events and
-cancellation between chunks: the callback returns True to stop).
+The same ``train_run`` serves the CLI (a progress bar) and the service worker (progress events,
+chunks bounded in time, and cancellation between units: ``interrupt`` is asked after each one).
+
+A checkpoint is written whole into ``checkpoint.new/`` and then swapped in by renames, and its
+meta data records the state's size and SHA-256: a checkpoint is either the previous one or the new
+one, never a mix, and a damaged one is refused instead of loaded.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
+import shutil
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -50,26 +56,92 @@ class ChunkResult:
 ProgressCallback = Callable[[ChunkResult], bool | None]
 
 
-def _write_atomic(path: Path, data: bytes) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
+def _write_synced(path: Path, data: bytes) -> None:
+    with open(path, "wb") as f:
         f.write(data)
         f.flush()
         os.fsync(f.fileno())
-    os.replace(tmp, path)
+
+
+def _fsync_dir(path: Path) -> None:
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:  # pragma: no cover - platforms without directory fds
+        return
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def save_checkpoint(run_dir: Path, trainer, state, chunk: int) -> Path:
-    """Write the full trainer state and its meta data; the previous checkpoint stays until replaced."""
-    ckpt = Path(run_dir) / CHECKPOINT_DIR
-    ckpt.mkdir(parents=True, exist_ok=True)
-    _write_atomic(ckpt / STATE_FILE, trainer.to_bytes(state))
-    meta = {
-        "chunk": chunk, "env_steps": trainer.env_steps(state),
-        "trainer": trainer.config.trainer_kind, "format": "flax-msgpack-v1",
-    }  # fmt: skip
-    _write_atomic(ckpt / META_FILE, json.dumps(meta).encode())
+    """Write the full trainer state and its meta data; the previous checkpoint stays until the new
+    one is complete on disk (a full disk fails the write and keeps the previous checkpoint)."""
+    run_dir = Path(run_dir)
+    ckpt, new, old = (run_dir / CHECKPOINT_DIR, run_dir / f"{CHECKPOINT_DIR}.new",
+                      run_dir / f"{CHECKPOINT_DIR}.old")  # fmt: skip
+    shutil.rmtree(new, ignore_errors=True)
+    new.mkdir(parents=True)
+    try:
+        data = trainer.to_bytes(state)
+        _write_synced(new / STATE_FILE, data)
+        meta = {
+            "chunk": chunk, "env_steps": trainer.env_steps(state),
+            "trainer": trainer.config.trainer_kind, "format": "flax-msgpack-v1",
+            "state_bytes": len(data), "state_sha256": hashlib.sha256(data).hexdigest(),
+        }  # fmt: skip
+        _write_synced(new / META_FILE, json.dumps(meta).encode())
+        _fsync_dir(new)
+    except BaseException:
+        shutil.rmtree(new, ignore_errors=True)  # frees what the failed write took
+        raise
+    shutil.rmtree(old, ignore_errors=True)
+    if ckpt.exists():
+        os.rename(ckpt, old)
+    os.rename(new, ckpt)
+    _fsync_dir(run_dir)
+    shutil.rmtree(old, ignore_errors=True)
     return ckpt
+
+
+def _complete(folder: Path) -> bool:
+    """Whether a checkpoint folder holds a state that matches its meta data."""
+    try:
+        meta = json.loads((folder / META_FILE).read_text())
+        data = (folder / STATE_FILE).read_bytes()
+    except (OSError, ValueError):
+        return False
+    if "state_sha256" not in meta:  # written before checksums were: as good as its files
+        return True
+    return len(data) == meta.get("state_bytes") and (
+        hashlib.sha256(data).hexdigest() == meta["state_sha256"]
+    )
+
+
+def checkpoint_dir(run_dir: Path) -> Path | None:
+    """The run's last complete checkpoint: ``checkpoint/``, or the previous one left in
+    ``checkpoint.old/`` by a crash in the middle of a swap; None if there is none."""
+    run_dir = Path(run_dir)
+    for folder in (run_dir / CHECKPOINT_DIR, run_dir / f"{CHECKPOINT_DIR}.old"):
+        if _complete(folder):
+            return folder
+    return None
+
+
+def read_config(run_dir: Path) -> TrainConfig:
+    """The TrainConfig of a run folder; FileNotFoundError if it is not one."""
+    cfg_path = Path(run_dir) / CONFIG_FILE
+    if not cfg_path.exists():
+        raise FileNotFoundError(f"{run_dir} is not a run folder: no {CONFIG_FILE}")
+    return TrainConfig.model_validate_json(cfg_path.read_text())
+
+
+def read_meta(run_dir: Path) -> dict[str, Any]:
+    """The meta data of a run folder's last complete checkpoint (chunk, env steps, trainer)."""
+    folder = checkpoint_dir(run_dir)
+    if folder is None:
+        raise FileNotFoundError(f"{run_dir} has no complete checkpoint")
+    return json.loads((folder / META_FILE).read_text())
 
 
 def load_run(run_dir: Path, trainer=None):
@@ -77,13 +149,12 @@ def load_run(run_dir: Path, trainer=None):
     from quicknav_core.train.trainers import make_trainer
 
     run_dir = Path(run_dir)
-    cfg_path = run_dir / CONFIG_FILE
-    if not cfg_path.exists():
-        raise FileNotFoundError(f"{run_dir} is not a run folder: no {CONFIG_FILE}")
-    config = TrainConfig.model_validate_json(cfg_path.read_text())
-    ckpt = run_dir / CHECKPOINT_DIR
-    if not (ckpt / STATE_FILE).exists():
-        raise FileNotFoundError(f"{run_dir} has no checkpoint yet ({CHECKPOINT_DIR}/{STATE_FILE})")
+    config = read_config(run_dir)
+    ckpt = checkpoint_dir(run_dir)
+    if ckpt is None:
+        raise FileNotFoundError(
+            f"{run_dir} has no checkpoint yet, or none that is complete ({CHECKPOINT_DIR}/{STATE_FILE})"
+        )
     meta = json.loads((ckpt / META_FILE).read_text())
     trainer = trainer if trainer is not None and trainer.config == config else make_trainer(config)
     state = trainer.from_bytes((ckpt / STATE_FILE).read_bytes())
@@ -104,11 +175,15 @@ def train_run(
     resume: bool = False,
     checkpoint_every: int = 1,
     trainer=None,
+    max_chunk_s: float | None = None,
+    interrupt: Callable[[], bool] | None = None,
 ) -> dict[str, Any]:
     """Train ``config`` into ``run_dir`` (or continue it with ``resume``). Returns a summary.
 
-    After every chunk: metrics are appended, a checkpoint is written every ``checkpoint_every``
-    chunks (and always at the end or on a stop), and ``callback`` may return True to stop.
+    A chunk is ``updates_per_chunk`` updates, or fewer if ``max_chunk_s`` seconds have passed or
+    ``interrupt()`` (asked after every unit) says stop. After every chunk: metrics are appended, a
+    checkpoint is written every ``checkpoint_every`` chunks (and always at the end or on a stop),
+    and ``callback`` may return True to stop. Grouping units into chunks never changes the result.
     """
     from quicknav_core.train.trainers import make_trainer
 
@@ -116,41 +191,53 @@ def train_run(
     run_dir.mkdir(parents=True, exist_ok=True)
     if resume:
         config, trainer, state, meta = load_run(run_dir, trainer)
-        done_chunks = int(meta["chunk"])
+        chunk = int(meta["chunk"])
         # drop metric lines written after the checkpoint (a crash between the two)
-        kept = [m for m in read_metrics(run_dir) if m["chunk"] <= done_chunks]
+        kept = [m for m in read_metrics(run_dir) if m["chunk"] <= chunk]
         (run_dir / METRICS_FILE).write_text("".join(json.dumps(m) + "\n" for m in kept))
     else:
         (run_dir / CONFIG_FILE).write_text(config.model_dump_json(indent=2))
         (run_dir / METRICS_FILE).write_text("")
         trainer = trainer or make_trainer(config)
         state = trainer.init_state()
-        done_chunks = 0
-    chunks = math.ceil(trainer.num_updates / trainer.updates_per_chunk)
-    total = chunks * trainer.steps_per_chunk
+        chunk = 0
+    chunks = math.ceil(trainer.num_updates / trainer.updates_per_chunk)  # without time bounds
+    total = trainer.total_env_steps
     stopped = False
-    chunk = done_chunks
-    while chunk < chunks:
+    done = trainer.updates_done(state)
+    while done < trainer.num_updates:
         t0 = time.perf_counter()
-        state, metrics = trainer.run_chunk(state)
+        steps0 = trainer.env_steps(state)
+        target = min(trainer.num_updates, done + trainer.updates_per_chunk)
+        units, interrupted = [], False
+        while done < target:
+            state, metrics = trainer.run_unit(state)
+            units.append(metrics)
+            done += trainer.updates_per_unit
+            if interrupt is not None and interrupt():
+                interrupted = True
+                break
+            if max_chunk_s is not None and time.perf_counter() - t0 >= max_chunk_s:
+                break
+        state, metrics = trainer.finish_chunk(state, units)
         wall = time.perf_counter() - t0
         chunk += 1
-        result = ChunkResult(
-            chunk, chunks, trainer.env_steps(state), total, wall, trainer.steps_per_chunk / wall,
-            metrics,
-        )  # fmt: skip
+        steps = trainer.env_steps(state)
+        result = ChunkResult(chunk, max(chunks, chunk), steps, total, wall,
+                             (steps - steps0) / max(wall, 1e-9), metrics)  # fmt: skip
         with open(run_dir / METRICS_FILE, "a") as f:
             f.write(json.dumps(result.record()) + "\n")
-        stop = bool(callback(result)) if callback else False
-        if stop or chunk == chunks or chunk % checkpoint_every == 0:
+        asked = bool(callback(result)) if callback else False
+        stop = interrupted or asked
+        if stop or done >= trainer.num_updates or chunk % checkpoint_every == 0:
             save_checkpoint(run_dir, trainer, state, chunk)
         if stop:
             stopped = True
             break
     plot_learning_curve(run_dir)
     return {
-        "run_dir": str(run_dir), "chunks_done": chunk, "chunks": chunks,
-        "env_steps": trainer.env_steps(state), "stopped": stopped,
+        "run_dir": str(run_dir), "chunks_done": chunk, "chunks": max(chunks, chunk),
+        "env_steps": trainer.env_steps(state), "total_steps": total, "stopped": stopped,
         "final": read_metrics(run_dir)[-1] if chunk else {},
     }  # fmt: skip
 

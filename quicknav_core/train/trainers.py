@@ -2,15 +2,23 @@
 
 ``make_trainer(TrainConfig)`` returns a ``Trainer`` with
   init_state() -> state              (from the config's seed)
-  run_chunk(state) -> (state, metrics)   one jit-compiled chunk of ``updates_per_chunk`` updates
+  run_unit(state) -> (state, unit metrics)   one compiled call of ``updates_per_unit`` updates
+  finish_chunk(state, [unit metrics]) -> (state, metrics)   a chunk's metrics, episode totals cleared
+  run_chunk(state) -> (state, metrics)   ``updates_per_chunk`` updates (units), then finish_chunk
   env_steps(state) -> int
   policy(state) -> Policy                for evaluation and serving
   to_bytes(state) / from_bytes(data)     checkpoints (msgpack via flax.serialization, no pickle)
+  train_batch(configs, env_params, on_chunk)   several trials that differ only in traced numbers,
+                                         side by side in one compiled program (``train.batched``)
+
+No trainer reads ``info["final_obs"]`` (rejax's PPO and ours treat a truncation like an ending),
+so trainers build their env with ``final_obs`` off and skip its second lidar cast per step.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -19,10 +27,21 @@ import jax
 import jax.numpy as jnp
 from flax import serialization
 
-from quicknav_core.config import PPOConfig, SACConfig, TD3Config, TrainConfig
+from quicknav_core.config import PPOConfig, SACConfig, TD3Config, TrainConfig, traced_fields
 from quicknav_core.networks import make_network
 from quicknav_core.train.recurrent_ppo import PPOHyper, RecurrentPPO
 from quicknav_core.train.stats import StatsWrapper, summarize
+
+# A chunk callback of batched training: (chunk index, per-trial metrics) -> stop?
+ChunkCallback = Callable[[int, list[dict[str, float]]], bool | None]
+
+
+def _stack(trees: list) -> Any:
+    return jax.tree.map(lambda *a: jnp.stack(a), *trees)
+
+
+def _unstack(tree: Any, k: int) -> list:
+    return [jax.tree.map(lambda x, i=i: x[i], tree) for i in range(k)]
 
 
 # --------------------------------------------------------------------------- policies
@@ -73,26 +92,70 @@ def _sac_mode(module, obs):
 
 
 # --------------------------------------------------------------------------- base
+# Env steps of one compiled call ("unit"), at least one update: small enough that progress,
+# cancellation and time-bounded chunks happen within about a second on a CPU, large enough that
+# the call's dispatch costs nothing next to it.
+UNIT_STEPS = 4096
+
+
+def _largest_divisor_at_most(n: int, cap: int) -> int:
+    return max(d for d in range(1, min(n, max(cap, 1)) + 1) if n % d == 0)
+
+
 class Trainer:
+    """A training run's compiled programs. The run is ``num_updates`` updates: the fewest whole
+    units that make ``total_steps`` env steps (a unit is one update for PPO). Chunks (metrics,
+    checkpoints, progress) are ``updates_per_chunk`` updates of units; the unit sequence, and so
+    the result, does not depend on how units are grouped into chunks."""
+
     config: TrainConfig
 
     def __init__(self, config: TrainConfig):
         self.config = config
-        self.env, self.env_params = config.env.build("train")
-        # Whole chunks only: the run makes ``num_updates`` updates, at least ``total_steps`` steps.
+        # nothing here reads the final observations: do not pay a second lidar cast for them
+        self.env, self.env_params = config.env.model_copy(update={"final_obs": False}).build("train")
         updates = max(1, math.ceil(config.total_steps / config.steps_per_update))
         self.updates_per_chunk = min(config.updates_per_chunk, updates)
-        self.num_updates = math.ceil(updates / self.updates_per_chunk) * self.updates_per_chunk
+        unit_cap = math.ceil(UNIT_STEPS / config.steps_per_update)
+        self.updates_per_unit = _largest_divisor_at_most(self.updates_per_chunk, unit_cap)
+        self.num_updates = math.ceil(updates / self.updates_per_unit) * self.updates_per_unit
 
     @property
     def steps_per_chunk(self) -> int:
         return self.updates_per_chunk * self.config.steps_per_update
 
+    @property
+    def steps_per_unit(self) -> int:
+        return self.updates_per_unit * self.config.steps_per_update
+
+    @property
+    def total_env_steps(self) -> int:
+        """Env steps the whole run makes (``total_steps`` rounded up to whole units)."""
+        return self.num_updates * self.config.steps_per_update
+
+    def updates_done(self, state) -> int:
+        return self.env_steps(state) // self.config.steps_per_update
+
     def init_state(self) -> Any:
         raise NotImplementedError
 
-    def run_chunk(self, state) -> tuple[Any, dict[str, float]]:
+    def run_unit(self, state) -> tuple[Any, Any]:
+        """One compiled call of ``updates_per_unit`` updates; returns when it has finished."""
         raise NotImplementedError
+
+    def finish_chunk(self, state, units: list) -> tuple[Any, dict[str, float]]:
+        """The chunk's metrics (algorithm metrics averaged over its units, episode statistics
+        since the last chunk) and the state with the episode totals cleared."""
+        raise NotImplementedError
+
+    def run_chunk(self, state) -> tuple[Any, dict[str, float]]:
+        """``updates_per_chunk`` updates (fewer if the run ends sooner), then the chunk's metrics."""
+        units = []
+        target = min(self.num_updates, self.updates_done(state) + self.updates_per_chunk)
+        while self.updates_done(state) < target:
+            state, metrics = self.run_unit(state)
+            units.append(metrics)
+        return self.finish_chunk(state, units)
 
     def env_steps(self, state) -> int:
         raise NotImplementedError
@@ -106,9 +169,25 @@ class Trainer:
     def from_bytes(self, data: bytes):
         return serialization.from_bytes(self.init_state(), data)
 
+    def train_batch(self, configs: list[TrainConfig], env_params: list, on_chunk: ChunkCallback | None = None):
+        """Train ``configs`` (this trainer's config up to traced numbers) side by side.
+
+        ``env_params[i]`` are trial i's env params (its reward weights). Returns (per-trial final
+        states, history: per chunk, per-trial episode metrics).
+        """
+        raise NotImplementedError
+
 
 def _floats(metrics: dict[str, Any]) -> dict[str, float]:
     return {k: float(v) for k, v in metrics.items()}
+
+
+def _mean_of_units(units: list[dict[str, Any]]) -> dict[str, float]:
+    """Algorithm metrics averaged over a chunk's units (units have equal numbers of updates)."""
+    if not units:
+        return {}
+    host = jax.device_get(units)
+    return {k: float(sum(float(u[k]) for u in host) / len(host)) for k in host[0]}
 
 
 # --------------------------------------------------------------------------- recurrent PPO
@@ -124,17 +203,22 @@ class RecurrentPPOTrainer(Trainer):
             num_steps=algo.num_steps, num_minibatches=algo.num_minibatches,
             num_epochs=algo.num_epochs, total_updates=self.num_updates, anneal_lr=algo.anneal_lr,
         )  # fmt: skip
+        self._batched: dict[int, tuple] = {}
+        self._clear = jax.jit(jax.vmap(lambda s: s.clear_totals()))
 
     def init_state(self):
         return self.algo.init(
             jax.random.PRNGKey(self.config.seed), PPOHyper.from_config(self.config.algorithm)
         )
 
-    def run_chunk(self, state):
-        state, metrics = self.algo.train_chunk(state, self.updates_per_chunk)
-        out = _floats(metrics)
+    def run_unit(self, state):
+        state, metrics = self.algo.train_chunk(state, self.updates_per_unit)
+        return jax.block_until_ready((state, metrics))
+
+    def finish_chunk(self, state, units):
+        out = _mean_of_units(units)
         out.update(summarize(state.stats))
-        state = state.replace(stats=jax.vmap(lambda s: s.clear_totals())(state.stats))
+        state = state.replace(stats=self._clear(state.stats))
         return state, out
 
     def env_steps(self, state) -> int:
@@ -142,6 +226,32 @@ class RecurrentPPOTrainer(Trainer):
 
     def policy(self, state) -> Policy:
         return Policy("recurrent", self.network, state.params)
+
+    def train_batch(self, configs, env_params, on_chunk=None):
+        k = len(configs)
+        if k not in self._batched:
+            algo, updates = self.algo, self.updates_per_unit
+            self._batched[k] = (
+                jax.jit(jax.vmap(algo.init, in_axes=(None, 0, 0))),
+                jax.jit(jax.vmap(lambda s: algo.chunk(s, updates))),
+                jax.jit(jax.vmap(lambda s: s.replace(stats=jax.vmap(lambda x: x.clear_totals())(s.stats)))),
+            )  # fmt: skip
+        init, unit, clear = self._batched[k]
+        hypers = _stack([PPOHyper.from_config(c.algorithm) for c in configs])
+        states = init(jax.random.PRNGKey(configs[0].seed), hypers, _stack(env_params))
+        history: list[list[dict[str, float]]] = []
+        done = 0
+        while done < self.num_updates:
+            target = min(self.num_updates, done + self.updates_per_chunk)
+            while done < target:
+                states, _ = unit(states)
+                done += self.updates_per_unit
+            per_trial = [summarize(s) for s in _unstack(states.stats, k)]
+            history.append(per_trial)
+            states = clear(states)
+            if on_chunk and on_chunk(len(history) - 1, per_trial):
+                break
+        return _unstack(states, k), history
 
 
 # --------------------------------------------------------------------------- rejax
@@ -193,7 +303,7 @@ class RejaxTrainer(Trainer):
             }  # fmt: skip
         else:  # pragma: no cover - config validation prevents this
             raise TypeError(type(algo).__name__)
-        steps = self.steps_per_chunk
+        steps = self.steps_per_unit
         created = cls.create(total_timesteps=steps, eval_freq=steps, **common, **kwargs)
         if self.kind == "rejax-td3":
             # rejax's TD3 fixes its networks at 64x64; put the configured sizes in their place
@@ -205,19 +315,22 @@ class RejaxTrainer(Trainer):
                 ),
                 critic=QNetwork(hidden_layer_sizes=hidden, activation=nn.relu),
             )
-        # One chunk = one rejax "eval iteration"; the callback reports our episode statistics.
+        # One unit = one rejax "eval iteration" (its callback is a no-op: the env wrapper counts
+        # episode statistics); calling it again continues from the train state.
         self.algo = created.replace(eval_callback=_stats_callback)
-        self._train = jax.jit(lambda ts: self.algo.train(train_state=ts))
+        self._train = jax.jit(lambda ts: self.algo.train(train_state=ts)[0])
+        self._clear = jax.jit(jax.vmap(lambda s: s.clear_totals()))
+        self._batched: dict[int, Any] = {}
 
     def init_state(self):
         return self.algo.init_state(jax.random.PRNGKey(self.config.seed))
 
-    def run_chunk(self, state):
-        state, _ = self._train(state)
+    def run_unit(self, state):
+        return jax.block_until_ready(self._train(state)), {}
+
+    def finish_chunk(self, state, units):
         out = summarize(state.env_state.stats)
-        env_state = state.env_state.replace(
-            stats=jax.vmap(lambda s: s.clear_totals())(state.env_state.stats)
-        )
+        env_state = state.env_state.replace(stats=self._clear(state.env_state.stats))
         return state.replace(env_state=env_state), out
 
     def env_steps(self, state) -> int:
@@ -225,6 +338,27 @@ class RejaxTrainer(Trainer):
 
     def policy(self, state) -> Policy:
         return Policy(self.kind, self.algo.actor, state.actor_ts.params)
+
+    def train_batch(self, configs, env_params, on_chunk=None):
+        # rejax builds its optimiser (a static closure over the learning rate) in init_state, so
+        # init and training sit inside one vmapped call: the group trains in one go, one "chunk".
+        k = len(configs)
+        steps = self.num_updates * self.config.steps_per_update
+        full = self.algo.replace(total_timesteps=steps, eval_freq=self.steps_per_unit)
+        names = sorted(traced_fields(type(self.config.algorithm)))
+
+        def trial(cfg: TrainConfig, params):
+            numbers = {n: jnp.float32(getattr(cfg.algorithm, n)) for n in names if hasattr(full, n)}
+            return full.replace(env_params=params, **numbers)
+
+        algos = _stack([trial(c, p) for c, p in zip(configs, env_params, strict=True)])
+        if k not in self._batched:
+            self._batched[k] = jax.jit(jax.vmap(lambda a, key: a.train(key)[0], in_axes=(0, None)))
+        final = self._batched[k](algos, jax.random.PRNGKey(configs[0].seed))
+        per_trial = [summarize(s) for s in _unstack(final.env_state.stats, k)]
+        if on_chunk:
+            on_chunk(0, per_trial)
+        return _unstack(final, k), [per_trial]
 
 
 def _stats_callback(algo, ts, rng):

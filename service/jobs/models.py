@@ -31,12 +31,17 @@ class JobKind(StrEnum):
 
 
 class Job(BaseModel):
-    """One job as stored (JSON, never pickle)."""
+    """One job as stored (JSON, never pickle).
+
+    ``request`` is the body as the client sent it (shown back, and hashed for idempotency);
+    ``config`` is what ``quicknav_core.config.resolve`` made of it, the only thing a worker reads.
+    """
 
     id: str
     kind: JobKind
     status: JobStatus = JobStatus.queued
     request: dict[str, Any]
+    config: dict[str, Any] = Field(default_factory=dict)
     created_at: float
     updated_at: float
     started_at: float | None = None
@@ -62,8 +67,62 @@ class JobNotFound(KeyError):
     pass
 
 
+class AmbiguousId(KeyError):
+    """A short id that is the prefix of several jobs' ids."""
+
+    def __init__(self, prefix: str, matches: list[str]):
+        super().__init__(prefix)
+        self.prefix = prefix
+        self.matches = matches
+
+
 class JobStateError(Exception):
     """The operation does not fit the job's state (e.g. deleting a running job)."""
+
+
+class StoreUnavailable(Exception):
+    """The store cannot be reached, or cannot write, right now: retry later.
+
+    ``reason`` says what is wrong in words a client may see ("unreachable", "disk full"): never a
+    host, port or path. ``disk_full`` marks a store that answers but cannot write.
+    """
+
+    def __init__(self, reason: str, disk_full: bool = False, retry_after_s: int = 5):
+        super().__init__(reason)
+        self.reason = reason
+        self.disk_full = disk_full
+        self.retry_after_s = retry_after_s
+
+
+# the store protocol's methods (the ones a guard wraps)
+STORE_METHODS = ("submit", "get", "list", "claim", "heartbeat", "progress", "finish", "release",
+                 "cancel", "delete", "publish", "events", "counts", "resolve_id")  # fmt: skip
+
+
+def guard_store_errors(cls, translate):
+    """Wrap a store class's protocol methods so that ``translate(exc)`` (returning a
+    ``StoreUnavailable`` or None) turns backend outages into ``StoreUnavailable``."""
+    import functools
+
+    def wrap(fn):
+        @functools.wraps(fn)
+        def guarded(*args, **kwargs):
+            try:
+                return fn(*args, **kwargs)
+            except StoreUnavailable:
+                raise
+            except Exception as e:
+                unavailable = translate(e)
+                if unavailable is None:
+                    raise
+                raise unavailable from e
+
+        return guarded
+
+    for name in STORE_METHODS:
+        if name in cls.__dict__:
+            setattr(cls, name, wrap(cls.__dict__[name]))
+    return cls
 
 
 def request_hash(kind: str, request: dict[str, Any]) -> str:
@@ -71,12 +130,16 @@ def request_hash(kind: str, request: dict[str, Any]) -> str:
 
 
 def new_job(
-    kind: JobKind, request: dict[str, Any], idempotency_key: str | None, max_attempts: int
+    kind: JobKind,
+    request: dict[str, Any],
+    config: dict[str, Any],
+    idempotency_key: str | None,
+    max_attempts: int,
 ) -> Job:
     now = time.time()
     return Job(
-        id=uuid.uuid4().hex, kind=kind, request=request, created_at=now, updated_at=now,
-        max_attempts=max_attempts, idempotency_key=idempotency_key,
+        id=uuid.uuid4().hex, kind=kind, request=request, config=config, created_at=now,
+        updated_at=now, max_attempts=max_attempts, idempotency_key=idempotency_key,
         request_hash=request_hash(kind, request),
     )  # fmt: skip
 
@@ -85,10 +148,15 @@ class JobStore(Protocol):
     """What the API and the workers need from a job store (both implementations pass one contract)."""
 
     def submit(
-        self, kind: JobKind, request: dict[str, Any], idempotency_key: str | None = None
+        self,
+        kind: JobKind,
+        request: dict[str, Any],
+        config: dict[str, Any],
+        idempotency_key: str | None = None,
     ) -> tuple[Job, bool]:
-        """Queue a job; returns (job, created). A repeated key with the same body returns the same
-        job (created False); with a different body raises IdempotencyConflict."""
+        """Queue a job with the request as sent and the config resolved from it; returns (job,
+        created). A repeated key with the same request returns the same job (created False); with
+        a different request raises IdempotencyConflict."""
 
     def get(self, job_id: str) -> Job: ...
 
@@ -125,3 +193,7 @@ class JobStore(Protocol):
 
     def counts(self) -> dict[str, int]:
         """Jobs per status."""
+
+    def resolve_id(self, prefix: str) -> str:
+        """The full id of the one job whose id starts with ``prefix`` (JobNotFound if none,
+        AmbiguousId if several)."""

@@ -17,39 +17,72 @@ cancel never overwrite each other.
 from __future__ import annotations
 
 import json
+import re
 import time
 from collections.abc import Callable
 from typing import Any
 
 import redis
+from redis.backoff import ExponentialBackoff
+from redis.retry import Retry
 
 from service.jobs.models import (
+    AmbiguousId,
     IdempotencyConflict,
     Job,
     JobKind,
     JobNotFound,
     JobStateError,
     JobStatus,
+    StoreUnavailable,
+    guard_store_errors,
     new_job,
     request_hash,
 )
 
 GROUP = "workers"
+SHORT_ID = re.compile(r"[0-9a-f]{4,31}")
+
+
+def unavailable(e: Exception) -> StoreUnavailable | None:
+    """Redis outages as StoreUnavailable, in words without the server's address."""
+    if isinstance(e, redis.BusyLoadingError):
+        return StoreUnavailable("redis is loading its data after a restart", retry_after_s=2)
+    if isinstance(e, redis.ConnectionError | redis.TimeoutError):
+        return StoreUnavailable("redis is unreachable")
+    if isinstance(e, redis.ReadOnlyError):
+        return StoreUnavailable("redis is read-only (a replica)")
+    if isinstance(e, redis.ResponseError) and str(e).startswith(("MISCONF", "OOM", "LOADING")):
+        return StoreUnavailable("redis refuses writes (persistence error or out of memory)")
+    return None
 
 
 class RedisJobStore:
     def __init__(
         self, url: str, prefix: str = "quicknav", max_attempts: int = 3, max_events: int = 10_000
     ):
-        self.r = redis.Redis.from_url(url, decode_responses=True)
+        # a dropped connection is retried a few times at once (a restart, a failover); after that
+        # calls raise StoreUnavailable and the caller backs off (the API answers 503)
+        self.r = redis.Redis.from_url(
+            url, decode_responses=True, socket_connect_timeout=2.0, socket_timeout=10.0,
+            health_check_interval=15, retry=Retry(ExponentialBackoff(cap=0.5, base=0.05), 3),
+            retry_on_error=[redis.ConnectionError, redis.TimeoutError],
+        )  # fmt: skip
         self.p = prefix
         self.max_attempts = max_attempts
         self.max_events = max_events
+        self._group_ready = False
+
+    def _ensure_group(self, force: bool = False) -> None:
+        """Create the queue's consumer group (once; again after Redis lost it, force=True)."""
+        if self._group_ready and not force:
+            return
         try:
             self.r.xgroup_create(self._k("queue"), GROUP, id="0", mkstream=True)
         except redis.ResponseError as e:
             if "BUSYGROUP" not in str(e):
                 raise
+        self._group_ready = True
 
     def _k(self, *parts: str) -> str:
         return ":".join((self.p, *parts))
@@ -88,9 +121,9 @@ class RedisJobStore:
                     continue
 
     # ------------------------------------------------------------------ protocol
-    def submit(self, kind, request, idempotency_key=None):
+    def submit(self, kind, request, config, idempotency_key=None):
         kind = JobKind(kind)
-        job = new_job(kind, request, idempotency_key, self.max_attempts)
+        job = new_job(kind, request, config, idempotency_key, self.max_attempts)
         if idempotency_key is not None:
             idem = self._k("idem", idempotency_key)
             if not self.r.set(idem, job.id, nx=True):
@@ -106,6 +139,7 @@ class RedisJobStore:
                 if other.request_hash != request_hash(kind, request):
                     raise IdempotencyConflict(idempotency_key)
                 return other, False
+        self._ensure_group()
         with self.r.pipeline() as pipe:
             self._write(pipe, job, None)
             pipe.zadd(self._k("jobs"), {job.id: job.created_at})
@@ -133,7 +167,14 @@ class RedisJobStore:
     def _take(self, worker: str, lease_s: float) -> tuple[str, str, bool] | None:
         """Next stream entry for this worker: (entry id, job id, reclaimed)."""
         queue = self._k("queue")
-        got = self.r.xreadgroup(GROUP, worker, {queue: ">"}, count=1)
+        self._ensure_group()
+        try:
+            got = self.r.xreadgroup(GROUP, worker, {queue: ">"}, count=1)
+        except redis.ResponseError as e:
+            if "NOGROUP" not in str(e):
+                raise
+            self._ensure_group(force=True)  # a Redis that came back without its data
+            got = self.r.xreadgroup(GROUP, worker, {queue: ">"}, count=1)
         if got:
             entry_id, fields = got[0][1][0]
             return entry_id, fields["job"], False
@@ -323,5 +364,18 @@ class RedisJobStore:
     def counts(self):
         return {s.value: int(self.r.scard(self._k("status", s.value))) for s in JobStatus}
 
+    def resolve_id(self, prefix):
+        if not SHORT_ID.fullmatch(prefix):
+            raise JobNotFound(prefix)
+        matches = sorted({m for m, _ in self.r.zscan_iter(self._k("jobs"), match=f"{prefix}*")})
+        if not matches:
+            raise JobNotFound(prefix)
+        if len(matches) > 1:
+            raise AmbiguousId(prefix, matches[:6])
+        return matches[0]
+
     def close(self) -> None:
         self.r.close()
+
+
+guard_store_errors(RedisJobStore, unavailable)

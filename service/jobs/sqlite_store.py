@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import errno
 import json
+import re
 import sqlite3
 import threading
 import time
@@ -10,15 +12,35 @@ from pathlib import Path
 from typing import Any
 
 from service.jobs.models import (
+    AmbiguousId,
     IdempotencyConflict,
     Job,
     JobKind,
     JobNotFound,
     JobStateError,
     JobStatus,
+    StoreUnavailable,
+    guard_store_errors,
     new_job,
     request_hash,
 )
+
+SHORT_ID = re.compile(r"[0-9a-f]{4,31}")
+
+
+def unavailable(e: Exception) -> StoreUnavailable | None:
+    """SQLite's and the file system's outages as StoreUnavailable (None: a real bug, re-raised)."""
+    if isinstance(e, OSError) and e.errno == errno.ENOSPC:
+        return StoreUnavailable("disk full: the job database cannot be written", disk_full=True)
+    if isinstance(e, sqlite3.OperationalError):
+        text = str(e).lower()
+        if "full" in text:
+            return StoreUnavailable("disk full: the job database cannot be written", disk_full=True)
+        if "locked" in text or "busy" in text:
+            return StoreUnavailable("the job database is busy", retry_after_s=1)
+        if "i/o" in text or "unable to open" in text or "readonly" in text:
+            return StoreUnavailable("the job database cannot be read or written")
+    return None
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS jobs (
@@ -66,12 +88,27 @@ class SQLiteJobStore:
 
             def __exit__(self, exc_type, exc, tb):
                 try:
-                    store._db.execute("ROLLBACK" if exc_type else "COMMIT")
+                    if exc_type is None:
+                        try:
+                            store._db.execute("COMMIT")
+                        except BaseException:
+                            store._rollback()
+                            raise
+                    else:
+                        store._rollback()
                 finally:
                     store._lock.release()
                 return False
 
         return _Tx()
+
+    def _rollback(self) -> None:
+        """Roll back if a transaction is open (SQLite ends some failed ones itself: a full disk)."""
+        if self._db.in_transaction:
+            try:
+                self._db.execute("ROLLBACK")
+            except sqlite3.Error:
+                pass
 
     @staticmethod
     def _save(db, job: Job) -> None:
@@ -91,7 +128,7 @@ class SQLiteJobStore:
         return Job.model_validate_json(row[0])
 
     # ------------------------------------------------------------------ protocol
-    def submit(self, kind, request, idempotency_key=None):
+    def submit(self, kind, request, config, idempotency_key=None):
         kind = JobKind(kind)
         with self._tx() as db:
             if idempotency_key is not None:
@@ -103,7 +140,7 @@ class SQLiteJobStore:
                     if job.request_hash != request_hash(kind, request):
                         raise IdempotencyConflict(idempotency_key)
                     return job, False
-            job = new_job(kind, request, idempotency_key, self.max_attempts)
+            job = new_job(kind, request, config, idempotency_key, self.max_attempts)
             self._save(db, job)
             return job, True
 
@@ -268,6 +305,20 @@ class SQLiteJobStore:
             ).fetchall()
         return [(int(s), json.loads(d)) for s, d in rows]
 
+    def resolve_id(self, prefix):
+        if not SHORT_ID.fullmatch(prefix):
+            raise JobNotFound(prefix)
+        with self._lock:
+            rows = self._db.execute(
+                "SELECT id FROM jobs WHERE id >= ? AND id < ? ORDER BY id LIMIT 6",
+                (prefix, prefix + "g"),  # 'g' sorts after every hex digit
+            ).fetchall()
+        if not rows:
+            raise JobNotFound(prefix)
+        if len(rows) > 1:
+            raise AmbiguousId(prefix, [r[0] for r in rows])
+        return rows[0][0]
+
     def counts(self):
         with self._lock:
             rows = self._db.execute("SELECT status, COUNT(*) FROM jobs GROUP BY status").fetchall()
@@ -278,3 +329,6 @@ class SQLiteJobStore:
     def close(self) -> None:
         with self._lock:
             self._db.close()
+
+
+guard_store_errors(SQLiteJobStore, unavailable)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import hmac
+import json
 import logging
 import uuid
 from concurrent.futures import ThreadPoolExecutor
@@ -20,7 +21,6 @@ from typing import Any
 import grpc
 import numpy as np
 from google.protobuf import json_format
-from pydantic import ValidationError
 from quicknav_client.proto.quicknav.v1 import rollout_pb2 as pb
 from quicknav_client.proto.quicknav.v1 import rollout_pb2_grpc as pb_grpc
 from quicknav_client.tensors import TensorError, decode, encode
@@ -32,6 +32,17 @@ log = logging.getLogger("quicknav.rollout")
 _SPLITS = {pb.SPLIT_UNSPECIFIED: "train", pb.SPLIT_TRAIN: "train", pb.SPLIT_TEST: "test"}
 # Stepping this few envs costs less than the hop to a worker thread; they run inline.
 INLINE_MAX_ENVS = 64
+
+
+# A status message travels in HTTP/2 trailers (metadata): past a few kB it breaks the call.
+MAX_MESSAGE_CHARS = 2000
+
+
+def bounded(message: str) -> str:
+    """A status message cut to MAX_MESSAGE_CHARS (bad input is never echoed at length)."""
+    if len(message) <= MAX_MESSAGE_CHARS:
+        return message
+    return message[: MAX_MESSAGE_CHARS - 40] + f"... ({len(message):,} characters in all)"
 
 
 class Refused(Exception):
@@ -60,27 +71,42 @@ def _bearer(context: grpc.aio.ServicerContext) -> str | None:
 
 
 def parse_env_config(start: pb.Start, settings: Settings):
-    """The EnvConfig a Start carries, validated against the model and the server's limits."""
-    from quicknav_core.config import EnvConfig, format_validation_error
+    """The EnvConfig a Start carries (resolved like every env: fields or dotted keys on the
+    defaults), validated against the model and the server's limits."""
+    from quicknav_core.config import ConfigError, resolve_env
+    from quicknav_core.config.errors import format_items
 
     which = start.WhichOneof("config")
+    if which == "config_json":
+        try:
+            fields = json.loads(start.config_json or "{}")
+        except json.JSONDecodeError as e:
+            raise Refused(grpc.StatusCode.INVALID_ARGUMENT,
+                          f"start.config_json is not valid JSON ({e})") from None  # fmt: skip
+        if not isinstance(fields, dict):
+            raise Refused(grpc.StatusCode.INVALID_ARGUMENT,
+                          "start.config_json must be a JSON object of EnvConfig fields")  # fmt: skip
+    elif which == "config_fields":
+        fields = _ints_where_integral(json_format.MessageToDict(start.config_fields))
+    else:
+        fields = {}
     try:
-        if which == "config_json":
-            config = EnvConfig.model_validate_json(start.config_json or "{}")
-        elif which == "config_fields":
-            fields = json_format.MessageToDict(start.config_fields)
-            config = EnvConfig.model_validate(_ints_where_integral(fields))
-        else:
-            config = EnvConfig()
-    except ValidationError as e:
+        config = resolve_env(fields)
+    except ConfigError as e:
         raise Refused(
-            grpc.StatusCode.INVALID_ARGUMENT, format_validation_error(e, prefix="start.config")
+            grpc.StatusCode.INVALID_ARGUMENT, format_items(e.items, prefix="start.config")
         ) from None
     if config.grid_size > settings.max_grid_size:
         raise Refused(
             grpc.StatusCode.INVALID_ARGUMENT,
             f"start.config.grid_size={config.grid_size} exceeds this server's limit; allowed range"
             f" 4..{settings.max_grid_size} (QUICKNAV_MAX_GRID_SIZE)",
+        )
+    if config.lidar_beams > settings.max_lidar_beams:
+        raise Refused(
+            grpc.StatusCode.INVALID_ARGUMENT,
+            f"start.config.lidar_beams={config.lidar_beams} exceeds this server's limit; allowed"
+            f" range 1..{settings.max_lidar_beams} (QUICKNAV_MAX_LIDAR_BEAMS)",
         )
     return config
 
@@ -153,12 +179,12 @@ class RolloutServicer(pb_grpc.RolloutServiceServicer):
                 if finished:
                     return
         except Refused as r:
-            await context.abort(r.code, r.message)
+            await context.abort(r.code, bounded(r.message))
         except asyncio.CancelledError:
             raise  # the client went away
         except Exception as e:  # a bug, not a bad request: say so, keep serving others
             log.exception("rollout session %s failed", session.id)
-            await context.abort(grpc.StatusCode.INTERNAL, f"{type(e).__name__}: {e}")
+            await context.abort(grpc.StatusCode.INTERNAL, bounded(f"{type(e).__name__}: {e}"))
         finally:
             if session.counted:
                 self.active_sessions -= 1
@@ -219,9 +245,12 @@ class RolloutServicer(pb_grpc.RolloutServiceServicer):
             return True
 
         from quicknav_core.env.batch import BatchedEnv
-        from quicknav_core.env.bounds import observation_bounds
+        from quicknav_core.env.constants import observation_bounds
 
         def build():
+            from quicknav_core.env.rooms import set_bank_cache
+
+            set_bank_cache(s.data_dir / "room-banks")  # a bank is carved once per config
             env = BatchedEnv(config, num_envs, seed=start.seed % 2**32, split=split)
             return env, env.reset()
 
@@ -326,7 +355,9 @@ class RolloutServicer(pb_grpc.RolloutServiceServicer):
     async def _stream_policy(self, session, start, config, num_envs, split, context) -> None:
         job_id = start.policy.job_id
         run_dir = self.settings.artifacts_dir / job_id
-        if not _is_plain_id(job_id) or not (run_dir / "checkpoint").is_dir():
+        from quicknav_core.train.run import checkpoint_dir
+
+        if not _is_plain_id(job_id) or checkpoint_dir(run_dir) is None:
             raise Refused(
                 grpc.StatusCode.NOT_FOUND,
                 f"start.policy.job_id={job_id!r}: no train job with a checkpoint by that id in"
@@ -368,7 +399,8 @@ def _is_plain_id(job_id: str) -> bool:
 
 def _policy_episodes(run_dir: Path, num_envs: int, seed: int, split: str, deterministic: bool):
     """One episode per env of a trained job's policy, with per-step poses, lidar and actions."""
-    from quicknav_core.evaluate import EvalConfig, agent_from_run, run_episodes
+    from quicknav_core.config import EvalConfig
+    from quicknav_core.eval.evaluate import agent_from_run, run_episodes
 
     agent, env_config, _ = agent_from_run(run_dir)
     env, params = env_config.build(split)

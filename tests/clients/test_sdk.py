@@ -29,7 +29,7 @@ from quicknav_client import (
 from quicknav_client.rest import SSEParser
 from typer.testing import CliRunner
 
-from quicknav_core.cli import app
+from quicknav_cli.main import app
 from tests.service.conftest import LiveServer, free_port
 
 TINY = {"env.grid_size": 8, "env.train_rooms": 32, "env.test_rooms": 16, "env.max_steps": 60,
@@ -148,7 +148,7 @@ def test_metrics_artifacts_and_download__match_the_servers_files(trained, client
     path = job.download("config.json", tmp_path)
     assert path == tmp_path / "config.json"
     config = json.loads(path.read_text())
-    assert config == job.request["config"] and config["env"]["grid_size"] == 8
+    assert config == job.config and config["env"]["grid_size"] == 8
 
     ckpt = client.download(job.id, "checkpoint/state.msgpack", tmp_path / "sub" / "ckpt.bin")
     on_server = live.settings.artifacts_dir / job.id / "checkpoint" / "state.msgpack"
@@ -180,18 +180,24 @@ def test_evaluate__maps_to_the_eval_request__cancel_wait_delete(trained, client)
     job, _ = trained
     ev = client.evaluate(job=job, episodes=4, seed=3)
     assert ev.kind == "eval" and ev.status == "queued"
-    assert ev.request == {"job_id": job.id, "policy": None, "env": {}, "episodes": 4, "seed": 3,
-                          "stochastic": False}  # fmt: skip
+    assert ev.request == {"source": job.id, "episodes": 4, "seed": 3, "split": "test",
+                          "deterministic": True}  # fmt: skip
+    # the stored config is resolved: the train job's own env, every field filled in
+    assert ev.config["policy"] == "trained" and ev.config["source"] == job.id
+    assert ev.config["env"] == job.config["env"] and ev.config["deterministic"] is True
     assert ev.cancel() is ev and ev.status == "cancelled" and ev.done and not ev.succeeded
     assert ev.wait(timeout=10).status == "cancelled"
     ev.delete()
     with pytest.raises(NotFound):
         client.job(ev.id)
 
-    base = client.evaluate(policy="oracle", episodes=2, env={"grid_size": 8}, stochastic=True)
+    with pytest.warns(DeprecationWarning, match="deterministic"):
+        base = client.evaluate(policy="oracle", episodes=2, env={"grid_size": 8}, stochastic=True)
     try:
         assert base.request["policy"] == "oracle" and base.request["env"] == {"grid_size": 8}
-        assert base.request["job_id"] is None and base.request["stochastic"] is True
+        assert "source" not in base.request and base.request["deterministic"] is False
+        assert base.config["env"]["grid_size"] == 8 and base.config["deterministic"] is False
+        assert base.config["env"]["lidar_beams"] == 16  # defaults filled in
     finally:
         base.cancel()
 
@@ -215,7 +221,7 @@ def test_jobs__filters_and_counts(trained, client):
     assert all(j.kind == "train" and j.status == "succeeded" for j in page)
     assert client.jobs(limit=1).count == client.jobs().count and len(client.jobs(limit=1)) == 1
     assert "demo" in client.presets() and client.health() == {"status": "ok"}
-    assert client.ready() == {"status": "ready"}
+    assert client.ready() == {"status": "ready", "checks": {"store": "ok", "disk": "ok"}}
 
 
 # --------------------------------------------------------------------------- idempotency, retries
@@ -368,7 +374,8 @@ def test_cli__submit_list_show_cancel_follow(live):
     assert r.exit_code == 0 and job_id in r.output, r.output
     r = jobs_cli(live, "show", job_id, "--json")
     shown = json.loads(r.output)
-    assert shown["id"] == job_id and shown["request"]["config"]["env"]["grid_size"] == 8
+    assert shown["id"] == job_id and shown["config"]["env"]["grid_size"] == 8
+    assert shown["request"] == {"preset": "demo", "overrides": TINY}
     r = jobs_cli(live, "show", job_id)
     assert r.exit_code == 0 and "queued" in r.output and "grid_size" in r.output
 

@@ -89,6 +89,7 @@ print("ok")
 """
 
 
+@pytest.mark.slow  # a subprocess with two XLA CPU devices: ~27 s on 2 cores
 def test_batched_env__sharded_over_two_cpu_devices_equals_one_device():
     import os
     import subprocess

@@ -2,12 +2,14 @@
 
 import json
 
+import pytest
 from typer.testing import CliRunner
 
-from quicknav_core.bench import BenchConfig, check_targets, run_bench, write_outputs
-from quicknav_core.cli import app
+from quicknav_cli.main import app
+from quicknav_core.bench.env import BenchConfig, check_targets, run_bench, write_outputs
 
 
+@pytest.mark.slow  # the whole env benchmark on tiny sizes: ~26 s on 2 cores
 def test_bench__tiny_run_is_complete_and_consistent(tmp_path):
     cfg = BenchConfig(grids=(4, 8), batches=(8,), beams=4, steps=400, repeats=3, budget_s=10)
     report = run_bench(cfg)
@@ -36,7 +38,7 @@ def test_bench__tiny_run_is_complete_and_consistent(tmp_path):
 
 
 def test_check_targets__reads_the_right_rows():
-    from quicknav_core.bench import Measurement
+    from quicknav_core.bench.env import Measurement
 
     def m(grid, impl, rate, compile_s=None):
         return Measurement(grid, impl, 4096 if impl == "jax-b4096" else 1, 1, 3, [1, 1, 1], rate,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 
-from quicknav_core.bench_learning import run_learning_bench
+from quicknav_core.bench.learning import run_learning_bench
 
 
 def _metrics(success: float) -> dict:
@@ -48,7 +48,7 @@ def _run(success: float, steps: float, minutes: float, seed: int) -> dict:
 
 
 def test_build_report__table2_target_needs_steps_success_and_time():
-    from quicknav_core.bench_learning import build_report
+    from quicknav_core.bench.learning import build_report
 
     def target(success, steps, minutes):
         rows = {"paper-lstm": [_run(success, steps, minutes, s) for s in range(3)],
@@ -66,7 +66,7 @@ def test_build_report__table2_target_needs_steps_success_and_time():
 
 def test_bench_learning__report_written_mid_row_keeps_finished_seeds(tmp_path, monkeypatch):
     """A session cut off while a row trains must not lose that row's committed seeds."""
-    import quicknav_core.bench_learning as bl
+    import quicknav_core.bench.learning as bl
 
     out, runs = tmp_path / "results", tmp_path / "runs"
     monkeypatch.setattr(bl, "baselines", lambda runs_dir: {})

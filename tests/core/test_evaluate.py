@@ -10,19 +10,11 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from quicknav_core.cli import app
-from quicknav_core.config import EnvConfig, TrainConfig
-from quicknav_core.evaluate import (
-    Episodes,
-    EvalConfig,
-    OracleAgent,
-    RandomAgent,
-    evaluate,
-    spl,
-    summarize,
-    wilson_interval,
-)
-from quicknav_core.planning import INF, goal_field, greedy_path, node_positions
+from quicknav_cli.main import app
+from quicknav_core.config import EnvConfig, EvalConfig, TrainConfig
+from quicknav_core.eval.evaluate import Episodes, evaluate, spl, summarize, wilson_interval
+from quicknav_core.eval.planning import INF, goal_field, greedy_path, node_positions
+from quicknav_core.eval.scripted import OracleAgent, RandomAgent
 from quicknav_core.train import train_run
 from tests.core.reference import disc_wall_clearance
 
@@ -151,6 +143,7 @@ def test_random__rarely_succeeds_on_the_same_episodes(baselines):
     assert oracle["per_episode"]["reference_length"] == random["per_episode"]["reference_length"]
 
 
+@pytest.mark.slow  # trains, then three CLI evaluations: ~50 s on 2 cores
 def test_eval__run_folder_twice_gives_identical_results(tmp_path):
     cfg = TrainConfig.model_validate({
         "env": {"grid_size": 8, "train_rooms": 32, "test_rooms": 16, "max_steps": 60},
@@ -177,12 +170,17 @@ def test_eval__run_folder_twice_gives_identical_results(tmp_path):
     assert result.exit_code == 0, result.output
 
 
-def test_eval_cli__baseline_and_errors(tmp_path):
-    runner = CliRunner()
-    result = runner.invoke(app, ["eval", "--policy", "random", "--episodes", "8", "--set", "grid_size=8",
-                                 "--out", str(tmp_path)])  # fmt: skip
+@pytest.mark.slow  # compiles an evaluation and draws its GIF: ~20 s on 2 cores
+def test_eval_cli__baseline_writes_results_and_pictures(tmp_path):
+    result = CliRunner().invoke(app, ["eval", "--policy", "random", "--episodes", "8", "--set",
+                                      "grid_size=8", "--out", str(tmp_path)])  # fmt: skip
     assert result.exit_code == 0, result.output
     assert json.loads((tmp_path / "eval.json").read_text())["metrics"]["episodes"] == 8
+    assert (tmp_path / "trajectories.png").exists() and (tmp_path / "episodes.gif").exists()
+
+
+def test_eval_cli__bad_input_fails_before_compiling(tmp_path):
+    runner = CliRunner()
     assert runner.invoke(app, ["eval"]).exit_code == 2
     bad = runner.invoke(app, ["eval", "--policy", "smart"])
     assert bad.exit_code == 2 and "allowed values" in bad.output

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 from quicknav_core.config import EnvConfig
-from quicknav_core.env.constants import HIT_GOAL, HIT_NONE, HIT_WALL
-from quicknav_core.env.lidar import beam_angles, cast_lidar
-from quicknav_core.env.numpy_env import beam_angles_np, cast_lidar_np
+from quicknav_core.env.constants import HIT_GOAL, HIT_NONE, HIT_WALL, beam_angles
+from quicknav_core.env.lidar import cast_lidar
+from quicknav_core.env.numpy_env import cast_lidar_np
 from quicknav_core.env.rooms import make_room_bank
 from tests.core.reference import brute_force_lidar, disc_wall_clearance
 
@@ -71,7 +71,7 @@ def test_lidar__matches_brute_force(grid, beams, fov, max_range):
         assert (hits[i] == ref_h).all(), (i, hits[i], ref_h)
         # the NumPy twin's caster is held to the same reference
         np_r, np_h = cast_lidar_np(
-            pos[i], theta[i], goal[i], walls[i], beam_angles_np(beams, fov), cfg.cell_size,
+            pos[i], theta[i], goal[i], walls[i], beam_angles(beams, fov), cfg.cell_size,
             max_range, cfg.goal_radius,
         )  # fmt: skip
         assert np.abs(np_r - ref_r).max() < 1e-4

@@ -4,7 +4,7 @@ import numpy as np
 from PIL import Image
 from typer.testing import CliRunner
 
-from quicknav_core.cli import app
+from quicknav_cli.main import app
 from quicknav_core.config import EnvConfig
 from quicknav_core.env.numpy_env import QuickNavNumpyEnv
 from quicknav_core.env.render import episode_frames, render_frame, save_gif

@@ -10,9 +10,16 @@ import redis
 from pydantic import ValidationError
 from typer.testing import CliRunner
 
-from quicknav_core.cli import app
-from quicknav_core.config import TrainConfig
-from quicknav_core.sweep import SweepConfig, apply_params, builtin_sweep, run_sweep, train_batch
+from quicknav_cli.main import app
+from quicknav_core.config import (
+    ConfigError,
+    SweepConfig,
+    TrainConfig,
+    apply_overrides,
+    resolve_sweep,
+)
+from quicknav_core.sweep import run_sweep
+from quicknav_core.train.batched import train_batch
 
 REDIS_URL = "redis://127.0.0.1:6379/13"  # this suite's own DB index
 
@@ -39,6 +46,7 @@ def _finished(study):
     return [t for t in study.get_trials() if t.state.is_finished()]
 
 
+@pytest.mark.slow  # two sweeps of 3 and 5 trials: ~40 s on 2 cores
 def test_sweep__sqlite_completes_writes_outputs_and_resumes(tmp_path):
     summary = run_sweep(tiny_sweep(), tmp_path)
     assert summary["trials"] == 3 and summary["best_value"] is not None
@@ -70,36 +78,35 @@ def test_sweep__sqlite_completes_writes_outputs_and_resumes(tmp_path):
     assert len(_finished(study)) >= 5
 
 
-def test_sweep__redis_journal_storage_is_shared():
+def test_sweep__redis_journal_storage_is_shared(tmp_path):
     client = redis.Redis.from_url(REDIS_URL)
     client.ping()  # no Redis here is a failure, not a skip
     client.flushdb()
     try:
+        # groups of 2 trials throughout: one compiled program (shared with the CLI test's sweep)
         cfg = tiny_sweep(storage=REDIS_URL, study_name="redis-test", trials=2)
-        summary = run_sweep(cfg, __import__("pathlib").Path("/tmp") / "qn-sweep-redis")
+        summary = run_sweep(cfg, tmp_path / "a")
         assert summary["trials"] == 2
         # a second "worker" sees the same study and continues it
-        run_sweep(
-            cfg.model_copy(update={"trials": 3}),
-            __import__("pathlib").Path("/tmp") / "qn-sweep-redis-2",
-        )
+        run_sweep(cfg.model_copy(update={"trials": 4}), tmp_path / "b")
         from optuna.storages import JournalStorage
         from optuna.storages.journal import JournalRedisBackend
 
         study = optuna.load_study(
             study_name="redis-test", storage=JournalStorage(JournalRedisBackend(REDIS_URL))
         )
-        assert len(_finished(study)) == 3
+        assert len(_finished(study)) == 4
     finally:
         client.flushdb()
 
 
-@pytest.mark.parametrize("network", ["lstm", "mlp"])
+# the recurrent path also trains batched in the fast sweep tests; its equality check is slow
+@pytest.mark.parametrize("network", [pytest.param("lstm", marks=pytest.mark.slow), "mlp"])
 def test_batched_trials_equal_one_at_a_time(network):
     base = TrainConfig.model_validate(
         BASE if network == "lstm" else {**BASE, "network": {"kind": "mlp", "hidden_sizes": [16]}}
     )
-    configs = [apply_params(base, {"algorithm.learning_rate": lr, "env.reward.step_penalty": sp})
+    configs = [apply_overrides(base, {"algorithm.learning_rate": lr, "env.reward.step_penalty": sp})
                for lr, sp in ((3e-3, 0.05), (1e-3, 0.3))]  # fmt: skip
     _, batched, _, hist_b = train_batch(configs)
     for i, cfg in enumerate(configs):
@@ -139,22 +146,22 @@ def test_invalid_search_spaces_are_rejected(space, message):
 
 
 def test_builtin_spaces_match_the_paper():
-    cfg = builtin_sweep("ppo")
+    cfg = resolve_sweep({"space": "ppo"})
     s = cfg.space
     assert (s["algorithm.learning_rate"].low, s["algorithm.learning_rate"].high) == (1e-5, 1e-3)
     assert s["algorithm.num_minibatches"].choices == [16, 32, 64, 128, 256]
     assert s["algorithm.num_steps"].choices == [64, 128, 256, 512]
     assert (s["algorithm.gamma"].low, s["algorithm.gamma"].high) == (0.9, 0.999)
-    lstm = builtin_sweep("lstm").space
+    lstm = resolve_sweep({"space": "lstm"}).space
     assert (lstm["env.reward.cycle_penalty"].low, lstm["env.reward.cycle_penalty"].high) == (
         0.001,
         0.5,
     )
-    mlp = builtin_sweep("mlp")
-    widened = apply_params(mlp.base, {"network.hidden_layers": 3, "network.hidden_size": 64})
+    mlp = resolve_sweep({"space": "mlp"})
+    widened = apply_overrides(mlp.base, {"network.hidden_layers": 3, "network.hidden_size": 64})
     assert widened.network.hidden_sizes == (64, 64, 64)
-    with pytest.raises(ValueError, match="unknown search space"):
-        builtin_sweep("dqn")
+    with pytest.raises(ConfigError, match="space"):
+        resolve_sweep({"space": "dqn"})
 
 
 def test_cli_sweep__config_file(tmp_path):

@@ -1,6 +1,6 @@
 """deploy/docker-compose.yml and the Dockerfile name only real commands, options, settings and ports.
 
-No Docker needed: the files are parsed and checked against the typer app of quicknav_core.cli,
+No Docker needed: the files are parsed and checked against the typer app of quicknav_cli.main,
 service.settings.Settings, the FastAPI app and pyproject.toml, so a renamed CLI option, setting,
 port or route fails here rather than in a container.
 """
@@ -21,8 +21,8 @@ import typer
 import yaml
 from fastapi.testclient import TestClient
 
-from quicknav_core.cli import app as cli_app
-from service.api.app import create_app
+from quicknav_cli.main import app as cli_app
+from service.api.main import create_app
 from service.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -381,6 +381,7 @@ def test_dockerfile__jax_extra_selects_the_uv_extra():
     assert len(syncs) == 2, "dependencies first (a cached layer), then the project"
     for run in syncs:
         assert "--locked" in run and "--no-dev" in run
+        assert "--extra service" in run, "the image runs the service: it needs its extra"
         assert '${JAX_EXTRA:+--extra "$JAX_EXTRA"}' in run
     assert "--no-install-workspace" in syncs[0]
 
@@ -395,6 +396,7 @@ def test_dockerfile__copies_what_the_project_build_needs():
         PYPROJECT["project"]["readme"],
         *PYPROJECT["tool"]["hatch"]["build"]["targets"]["wheel"]["packages"],
         *PYPROJECT["tool"]["uv"]["workspace"]["members"],
+        "proto",  # the one home of the .proto the client package builds its stubs from
     ]
     for path in needed:
         assert re.search(rf"(^|\s){re.escape(path)}(\s|$)", copied), f"{path} is not copied"
@@ -423,7 +425,7 @@ def test_deploy_readme__names_only_real_variables():
     names = set(re.findall(r"QUICKNAV_[A-Z_]+", text))
     # read outside Settings: by the CLI, or by compose itself when it interpolates the file
     elsewhere = {
-        "QUICKNAV_JAX_CACHE": (ROOT / "quicknav_core" / "cli.py").read_text(),
+        "QUICKNAV_JAX_CACHE": (ROOT / "quicknav_cli" / "common.py").read_text(),
         "QUICKNAV_PUBLISH_ADDR": COMPOSE_FILE.read_text(),
     }
     for name in names:

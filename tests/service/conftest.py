@@ -23,13 +23,17 @@ def free_port() -> int:
 
 
 class LiveServer:
-    def __init__(self, tmp_path, **settings_kw):
-        self.settings = Settings(data_dir=tmp_path / "data", embedded_worker=False, lease_s=5.0,
-                                 heartbeat_s=0.5, **settings_kw)  # fmt: skip
-        self.store = SQLiteJobStore(
+    """The API on a free port (uvicorn in a thread); SQLite unless a ``store`` is given; worker
+    processes only with ``start_workers=True`` (then supervised child processes, as in serve)."""
+
+    def __init__(self, tmp_path, store=None, start_workers: bool = False, data_dir=None,
+                 **settings_kw):  # fmt: skip
+        self.settings = Settings(data_dir=data_dir or tmp_path / "data", embedded_worker=False,
+                                 lease_s=5.0, heartbeat_s=0.5, **settings_kw)  # fmt: skip
+        self.store = store or SQLiteJobStore(
             self.settings.data_dir / "jobs.db", max_attempts=self.settings.max_attempts
         )
-        self.app = create_app(self.settings, self.store, start_workers=False)
+        self.app = create_app(self.settings, self.store, start_workers=start_workers)
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         self.server = uvicorn.Server(
@@ -59,13 +63,7 @@ class LiveServer:
         self, worker_id: str = "test-worker"
     ) -> tuple[Worker, threading.Thread]:
         w = self.worker(worker_id)
-
-        def loop():
-            while not w.shutdown.is_set():
-                if not w.run_once():
-                    time.sleep(0.05)
-
-        t = threading.Thread(target=loop, daemon=True)
+        t = threading.Thread(target=w.run_forever, kwargs={"poll_s": 0.05}, daemon=True)
         t.start()
         return w, t
 

@@ -96,8 +96,12 @@ def test_train_job__sse_artifacts_metrics_then_eval_job(live):
         png = httpx.get(f"{live.url}/jobs/{job['id']}/artifacts/learning_curve.png")
         assert png.content[:8] == b"\x89PNG\r\n\x1a\n"
 
-        ev = httpx.post(f"{live.url}/jobs/eval", json={"job_id": job["id"], "episodes": 8})
+        # split and env overrides reach the worker through the stored config (split once did not)
+        body = {"job_id": job["id"], "episodes": 8, "split": "train", "env": {"max_steps": 30}}
+        ev = httpx.post(f"{live.url}/jobs/eval", json=body)
         assert ev.status_code == 202, ev.text
+        assert ev.json()["config"]["split"] == "train" and ev.json()["config"]["env"]["max_steps"] == 30
+        assert ev.json()["config"]["env"]["grid_size"] == 8  # the train job's env underneath
         ev_done = wait_status(live.url, ev.json()["id"], {"succeeded", "failed"})
         assert ev_done["status"] == "succeeded", ev_done["error"]
         assert ev_done["result"]["metrics"]["episodes"] == 8
@@ -106,7 +110,13 @@ def test_train_job__sse_artifacts_metrics_then_eval_job(live):
             for a in httpx.get(f"{live.url}/jobs/{ev.json()['id']}/artifacts").json()["artifacts"]
         }
         assert {"eval.json", "trajectories.png", "episodes.gif"} <= names
-
+        measured = httpx.get(f"{live.url}/jobs/{ev.json()['id']}/artifacts/eval.json").json()
+        assert measured["eval_config"]["split"] == "train" and measured["env_config"]["max_steps"] == 30
+        assert max(measured["per_episode"]["steps"]) <= 30
+        # an env the policy cannot read (another observation length) is refused up front
+        r = httpx.post(f"{live.url}/jobs/eval", json={"job_id": job["id"], "env": {"lidar_beams": 4}})
+        assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "env"]
+        assert "lidar_beams" in r.text
         listed = httpx.get(f"{live.url}/jobs", params={"kind": "eval"}).json()
         assert listed["count"] == 1 and listed["data"][0]["id"] == ev.json()["id"]
         listed = httpx.get(f"{live.url}/jobs", params={"status": "succeeded", "limit": 1}).json()
@@ -157,8 +167,14 @@ def test_idempotency_key(live):
 
 
 def test_bad_input_is_refused_with_named_fields(live):
-    r = httpx.post(f"{live.url}/jobs/eval", json={"job_id": "x", "env": {"grid_size": 8}})
-    assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "env"]
+    r = httpx.post(f"{live.url}/jobs/eval", json={"policy": "random", "env": {"grid_size": 2}})
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "env", "grid_size"]
+    r = httpx.post(f"{live.url}/jobs/eval", json={"policy": "random", "env": {"gird_size": 8}})
+    assert r.status_code == 422 and "unknown field 'gird_size'" in r.text
+    r = httpx.post(f"{live.url}/jobs/sweep", json={"space": "ppo", "total_steps": 1})
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "total_steps"]
+    r = httpx.post(f"{live.url}/jobs/train", json={"preset": "demo", "overrides": {"algorithm.learning_rate": "NaN"}})
+    assert r.status_code == 422 and "finite" in r.text
     r = httpx.post(f"{live.url}/jobs/train", json={"preset": "demo", "overrides": {"num_envs": 0}})
     assert r.status_code == 422 and "num_envs" in r.text
     r = httpx.post(
@@ -233,7 +249,7 @@ def test_prometheus_metrics_and_presets(live):
 
 
 def test_events__non_finite_metrics_travel_as_null(live):
-    job, _ = live.store.submit("eval", {"policy": "random", "episodes": 1, "seed": 0})
+    job, _ = live.store.submit("eval", {"policy": "random", "episodes": 1, "seed": 0}, {})
     live.store.publish(job.id, {"type": "progress", "metrics": {"return": float("nan"), "n": 1}})
     with httpx.stream("GET", f"{live.url}/jobs/{job.id}/events", timeout=10) as r:
         lines = []
@@ -253,9 +269,9 @@ def test_sweep_trial_limit_names_the_field_the_client_sent(live):
     r = httpx.post(f"{live.url}/jobs/sweep", json={"space": "ppo", "trials": limit + 1})
     assert r.status_code == 422
     assert r.json()["detail"][0]["loc"] == ["body", "trials"] and "max_sweep_trials" in r.text
-    from quicknav_core.sweep import builtin_sweep
+    from quicknav_core.config import resolve_sweep
 
-    cfg = builtin_sweep("ppo", trials=limit + 1, parallel=1, study_name="x").model_dump(mode="json")
+    cfg = resolve_sweep({"space": "ppo", "trials": limit + 1}).model_dump(mode="json")
     r = httpx.post(f"{live.url}/jobs/sweep", json={"config": cfg})
     assert r.status_code == 422
     assert r.json()["detail"][0]["loc"] == ["body", "config", "trials"]

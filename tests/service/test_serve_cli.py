@@ -20,7 +20,7 @@ def test_serve__http_grpc_and_worker_in_one_process(tmp_path):
     env = {**os.environ, "QUICKNAV_DATA_DIR": str(tmp_path / "data")}
     env.pop("QUICKNAV_REDIS_URL", None)
     proc = subprocess.Popen(
-        [sys.executable, "-m", "quicknav_core.cli", "serve", "--port", str(http_port),
+        [sys.executable, "-m", "quicknav_cli", "serve", "--port", str(http_port),
          "--grpc-port", str(grpc_port)],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )  # fmt: skip

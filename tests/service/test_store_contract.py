@@ -30,11 +30,12 @@ def store(request, tmp_path):
 
 
 def test_submit_get_list_and_filters(store):
-    a, created = store.submit("train", {"preset": "demo"})
+    a, created = store.submit("train", {"preset": "demo"}, {"total_steps": 8, "env": {"grid_size": 8}})
     assert created and a.status == JobStatus.queued
-    b, _ = store.submit("eval", {"policy": "random"})
-    c, _ = store.submit("train", {"preset": "paper-ppo"})
+    b, _ = store.submit("eval", {"policy": "random"}, {})
+    c, _ = store.submit("train", {"preset": "paper-ppo"}, {})
     assert store.get(a.id).request == {"preset": "demo"}
+    assert store.get(a.id).config == {"total_steps": 8, "env": {"grid_size": 8}}
     jobs, total = store.list()
     assert total == 3 and [j.id for j in jobs] == [c.id, b.id, a.id]  # newest first
     jobs, total = store.list(kind="train")
@@ -46,17 +47,17 @@ def test_submit_get_list_and_filters(store):
 
 
 def test_idempotency_key(store):
-    a, created = store.submit("train", {"preset": "demo"}, idempotency_key="k1")
-    again, created2 = store.submit("train", {"preset": "demo"}, idempotency_key="k1")
+    a, created = store.submit("train", {"preset": "demo"}, {}, idempotency_key="k1")
+    again, created2 = store.submit("train", {"preset": "demo"}, {}, idempotency_key="k1")
     assert created and not created2 and again.id == a.id
     with pytest.raises(IdempotencyConflict):
-        store.submit("train", {"preset": "other"}, idempotency_key="k1")
+        store.submit("train", {"preset": "other"}, {}, idempotency_key="k1")
     assert store.list()[1] == 1
 
 
 def test_claim_is_fifo_and_exclusive(store):
-    a, _ = store.submit("train", {"n": 1})
-    b, _ = store.submit("train", {"n": 2})
+    a, _ = store.submit("train", {"n": 1}, {})
+    b, _ = store.submit("train", {"n": 2}, {})
     first = store.claim("w1", lease_s=30)
     second = store.claim("w2", lease_s=30)
     assert (first.id, second.id) == (a.id, b.id)
@@ -66,7 +67,7 @@ def test_claim_is_fifo_and_exclusive(store):
 
 
 def test_heartbeat_progress_events_and_finish(store):
-    a, _ = store.submit("train", {})
+    a, _ = store.submit("train", {}, {})
     job = store.claim("w1", 30)
     assert store.heartbeat(job.id, "w1", 30)
     assert not store.heartbeat(job.id, "w2", 30)
@@ -90,10 +91,10 @@ def test_heartbeat_progress_events_and_finish(store):
 
 
 def test_cancel_queued_and_running(store):
-    q, _ = store.submit("train", {"n": 1})
+    q, _ = store.submit("train", {"n": 1}, {})
     assert store.cancel(q.id).status == JobStatus.cancelled
     assert store.cancel(q.id).status == JobStatus.cancelled  # idempotent
-    r, _ = store.submit("train", {"n": 2})
+    r, _ = store.submit("train", {"n": 2}, {})
     job = store.claim("w1", 30)
     assert job.id == r.id, "a cancelled queued job is never handed out"
     flagged = store.cancel(r.id)
@@ -103,7 +104,7 @@ def test_cancel_queued_and_running(store):
 
 
 def test_release_requeues_without_spending_an_attempt(store):
-    a, _ = store.submit("train", {})
+    a, _ = store.submit("train", {}, {})
     job = store.claim("w1", 30)
     store.release(job.id, "w1")
     assert store.get(a.id).status == JobStatus.queued
@@ -112,7 +113,7 @@ def test_release_requeues_without_spending_an_attempt(store):
 
 
 def test_expired_lease_is_reclaimed_then_given_up(store):
-    a, _ = store.submit("train", {})
+    a, _ = store.submit("train", {}, {})
     store.claim("dead-1", lease_s=0.2)
     time.sleep(0.35)
     second = store.claim("w2", lease_s=0.2)
@@ -127,7 +128,7 @@ def test_expired_lease_is_reclaimed_then_given_up(store):
 
 
 def test_delete_only_finished(store):
-    a, _ = store.submit("train", {})
+    a, _ = store.submit("train", {}, {})
     with pytest.raises(JobStateError):
         store.delete(a.id)
     store.cancel(a.id)

@@ -11,10 +11,10 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
 import redis
 
-from quicknav_core.config import apply_overrides
-from quicknav_core.train.presets import get_preset
+from quicknav_core.config import apply_overrides, get_preset
 from service.jobs.models import JobStatus
 from service.jobs.redis_store import RedisJobStore
 
@@ -24,7 +24,7 @@ REDIS_URL = "redis://127.0.0.1:6379/15"  # this test's own DB index
 def _worker(tmp_path: Path, *args: str) -> subprocess.Popen:
     env = {**os.environ, "QUICKNAV_REDIS_URL": REDIS_URL, "QUICKNAV_DATA_DIR": str(tmp_path / "data"),
            "QUICKNAV_LEASE_S": "3", "QUICKNAV_HEARTBEAT_S": "0.5"}  # fmt: skip
-    return subprocess.Popen([sys.executable, "-m", "quicknav_core.cli", "worker", *args], env=env,
+    return subprocess.Popen([sys.executable, "-m", "quicknav_cli", "worker", *args], env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)  # fmt: skip
 
 
@@ -37,6 +37,7 @@ def _wait(pred, timeout=120, what="condition"):
     raise AssertionError(f"timed out waiting for {what}")
 
 
+@pytest.mark.slow  # two worker processes compile and train: ~90 s on 2 cores
 def test_sigterm_hands_back_sigkill_is_reclaimed_and_resumed(tmp_path):
     client = redis.Redis.from_url(REDIS_URL)
     client.ping()  # no Redis is a failure, not a skip
@@ -46,7 +47,7 @@ def test_sigterm_hands_back_sigkill_is_reclaimed_and_resumed(tmp_path):
         "env.grid_size=8", "env.train_rooms=32", "env.test_rooms=16", "num_envs=16",
         "algorithm.num_steps=32", "algorithm.num_minibatches=4", "total_steps=20480", "chunk_steps=512",
     ])  # fmt: skip
-    job, _ = store.submit("train", {"config": cfg.model_dump(mode="json")})
+    job, _ = store.submit("train", {"config": cfg.model_dump(mode="json")}, cfg.model_dump(mode="json"))
     ckpt_meta = tmp_path / "data" / "artifacts" / job.id / "checkpoint" / "meta.json"
 
     def chunks_done():

@@ -18,8 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from quicknav_core.config import TrainConfig
-from quicknav_core.train.presets import get_preset
+from quicknav_core.config import EnvConfig, get_preset, resolve_eval, resolve_train
 
 
 @dataclass(frozen=True)
@@ -44,7 +43,7 @@ ROWS = (
     Row("PPO + GTrXL", 2, "paper-gtrxl", 6_000_000, 60, "steps 133.90 ± 88.94"),
 )
 NOTES = (
-    "Configs: `quicknav presets` / `quicknav_core/train/presets.py`; each seed is the preset with "
+    "Configs: `quicknav presets` / `quicknav_core/config/presets.py`; each seed is the preset with "
     "`seed` = 0, 1, 2 and the row's step budget; a seed stops at its step budget or its time cap. "
     "Nothing was tuned on the test bank.",
     "Table 1 TD3 exploits the paper's sign-of-progress reward (+λp for any step that shortens the "
@@ -75,18 +74,17 @@ def _slug(row: Row) -> str:
 
 def run_one(row: Row, seed: int, runs_dir: Path, scale: float = 1.0, say=print) -> dict[str, Any]:
     """Train (or finish training) one seed of a row and evaluate it; returns its eval result."""
-    from quicknav_core.evaluate import EvalConfig, agent_from_run, evaluate
-    from quicknav_core.train.run import CHECKPOINT_DIR, CONFIG_FILE, META_FILE, train_run
+    from quicknav_core.eval.evaluate import run_eval
+    from quicknav_core.train.run import CONFIG_FILE, checkpoint_dir, read_meta, train_run
 
     run_dir = runs_dir / f"{_slug(row)}-s{seed}"
     eval_path = run_dir / "eval" / "eval.json"
     if eval_path.exists():
         return json.loads(eval_path.read_text())
-    cfg: TrainConfig = get_preset(row.preset)
-    data = cfg.model_dump(mode="json")
-    data["seed"] = seed
-    data["total_steps"] = max(int(row.total_steps * scale), cfg.steps_per_update)
-    cfg = TrainConfig.model_validate(data)
+    steps = max(int(row.total_steps * scale), get_preset(row.preset).steps_per_update)
+    cfg = resolve_train(
+        {"preset": row.preset, "overrides": {"seed": seed, "total_steps": steps}}
+    )
     cap_s = row.max_minutes * 60 * scale
     started = time.perf_counter()
     elapsed_before = 0.0
@@ -101,13 +99,15 @@ def run_one(row: Row, seed: int, runs_dir: Path, scale: float = 1.0, say=print) 
             f"success {result.metrics.get('success_rate', float('nan')):.0%}")  # fmt: skip
         return spent >= cap_s
 
-    resume = (run_dir / CONFIG_FILE).exists() and (run_dir / CHECKPOINT_DIR / META_FILE).exists()
+    resume = (run_dir / CONFIG_FILE).exists() and checkpoint_dir(run_dir) is not None
     run_dir.mkdir(parents=True, exist_ok=True)
     summary = train_run(cfg, run_dir, callback=stop, resume=resume)
-    agent, env_cfg, meta = agent_from_run(run_dir)
-    result, _ = evaluate(
-        env_cfg, agent, EvalConfig(episodes=EVAL_EPISODES, seed=EVAL_SEED), run_dir / "eval"
+    eval_cfg = resolve_eval(
+        {"run": str(run_dir), "episodes": EVAL_EPISODES, "seed": EVAL_SEED},
+        trained_env=lambda _source: cfg.env,
     )
+    result, _ = run_eval(eval_cfg, run_dir / "eval", run_dir=run_dir)
+    meta = read_meta(run_dir)
     result["training"] = {
         "env_steps": meta["env_steps"],
         "machine": _machine(),
@@ -121,26 +121,26 @@ def run_one(row: Row, seed: int, runs_dir: Path, scale: float = 1.0, say=print) 
 
 def _machine() -> str:
     """Where a seed trained, in words (its minutes are only comparable on the same machine)."""
-    from quicknav_core.bench import machine_info
+    from quicknav_core.bench.machine import machine_line
 
-    info = machine_info()
-    return f"{info['cpu']}, {info['cores']} cores, {info['jax_backend']}"
+    return machine_line()
 
 
 def baselines(runs_dir: Path) -> dict[str, dict[str, Any]]:
     """Oracle and random on the Table 1 and Table 2 episodes."""
-    from quicknav_core.evaluate import EvalConfig, agent_for, evaluate
+    from quicknav_core.eval.evaluate import run_eval
 
     out = {}
     for table, preset in ((1, "paper-ppo"), (2, "paper-lstm")):
-        env_cfg = get_preset(preset).env
+        env_cfg: EnvConfig = get_preset(preset).env
         for policy in ("oracle", "random"):
             path = runs_dir / f"baseline-{policy}-table{table}" / "eval.json"
             if path.exists():
                 out[f"{policy}-table{table}"] = json.loads(path.read_text())
                 continue
-            result, _ = evaluate(env_cfg, agent_for(policy, env_cfg),
-                                 EvalConfig(episodes=EVAL_EPISODES, seed=EVAL_SEED), path.parent)  # fmt: skip
+            cfg = resolve_eval({"policy": policy, "env": env_cfg.model_dump(mode="json"),
+                                "episodes": EVAL_EPISODES, "seed": EVAL_SEED})  # fmt: skip
+            result, _ = run_eval(cfg, path.parent)
             out[f"{policy}-table{table}"] = result
     return out
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from quicknav_core.config import TrainConfig
+from quicknav_core.config.train import TrainConfig
 
 _PAPER_PPO = {
     "name": "ppo", "learning_rate": 4e-4, "num_minibatches": 256, "num_steps": 512,
@@ -166,3 +166,11 @@ def get_preset(name: str) -> TrainConfig:
     if name not in PRESETS:
         raise ValueError(f"unknown preset {name!r}; known presets: {', '.join(PRESETS)}")
     return TrainConfig.model_validate(PRESETS[name]["config"])
+
+
+def preset_summaries() -> dict[str, dict[str, Any]]:
+    """Every preset's description, notes and config (what ``GET /presets`` and the CLI list)."""
+    return {
+        name: {k: p[k] for k in ("description", "notes", "config") if k in p}
+        for name, p in PRESETS.items()
+    }

@@ -1,4 +1,4 @@
-"""`quicknav bench`: environment throughput, JAX versus the NumPy twin (the paper's Figure 3, redone).
+"""`quicknav bench` (or `quicknav bench env`): environment throughput, JAX versus the NumPy twin (the paper's Figure 3, redone).
 
 For every grid size it measures, with uniformly random actions:
   numpy        the NumPy twin, one env stepped in a Python loop (the paper's baseline)
@@ -16,8 +16,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import platform
 import statistics
 import time
 import tracemalloc
@@ -28,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from quicknav_core.bench.machine import machine_info
 from quicknav_core.config import EnvConfig
 
 DEFAULT_GRIDS = (4, 8, 16)
@@ -102,41 +101,6 @@ def env_config_for(grid: int, cfg: BenchConfig) -> EnvConfig:
         final_obs=cfg.final_obs,
         room_seed=cfg.seed,
     )
-
-
-def machine_info() -> dict[str, Any]:
-    """CPU model, cores, memory, JAX backend and devices, versions."""
-    import jax
-    import jaxlib
-
-    cpu = platform.processor() or ""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    mem_gib = None
-    try:
-        pages, size = os.sysconf("SC_PHYS_PAGES"), os.sysconf("SC_PAGE_SIZE")
-        mem_gib = round(pages * size / 2**30, 1)
-    except (ValueError, OSError, AttributeError):
-        pass
-    devices = jax.devices()
-    return {
-        "cpu": cpu,
-        "cores": os.cpu_count(),
-        "memory_gib": mem_gib,
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "numpy": np.__version__,
-        "jax": jax.__version__,
-        "jaxlib": jaxlib.__version__,
-        "jax_backend": jax.default_backend(),
-        "jax_devices": [str(d) for d in devices],
-        "device_kind": devices[0].device_kind if devices else "",
-    }
 
 
 def _median(xs: Sequence[float]) -> float:

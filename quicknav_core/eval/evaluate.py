@@ -8,117 +8,32 @@ over the step limit); finished episodes are frozen. Actions are deterministic un
 SPL (Anderson et al. 2018) = mean_i S_i * l_i / max(p_i, l_i), with p_i the path the robot drove
 until it reached the goal disc and l_i the shortest disc path into the goal disc
 (``planning.shortest_path_length``).
+
+``run_eval(EvalConfig)`` runs what a resolved config names (a trained policy or a baseline);
+``evaluate(env_config, agent, cfg)`` runs any ``Agent`` (``scripted`` holds the baselines).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 
-from quicknav_core.config import EnvConfig
-from quicknav_core.planning import oracle_action, oracle_plan, shortest_path_length
+from quicknav_core.config import EnvConfig, EvalConfig
+from quicknav_core.config.eval import EVAL_BATCH
+from quicknav_core.eval.agents import Agent, PolicyAgent, agent_from_run
+from quicknav_core.eval.planning import shortest_path_length
+from quicknav_core.eval.scripted import baseline_agent
 
-
-class EvalConfig(BaseModel):
-    """How to evaluate."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    episodes: int = Field(100, ge=1, le=100_000)
-    seed: int = Field(0, ge=0, le=2**31 - 1)
-    split: Literal["train", "test"] = "test"
-    deterministic: bool = True
-    gif_episodes: int = Field(
-        3, ge=0, le=1024, description="episodes whose per-step poses, lidar and actions are kept"
-    )
-    pictures: bool = True
-
-
-# --------------------------------------------------------------------------- agents
-class Agent:
-    """What evaluation needs from a policy: per-episode state and a batched act.
-
-    ``payload`` is the traced data (network parameters); everything else is static and named by
-    ``static_key()``, so agents that differ only in payload share one compiled evaluation.
-    """
-
-    name = "agent"
-
-    @property
-    def payload(self) -> Any:
-        return ()
-
-    def static_key(self) -> Any:
-        return (type(self).__name__,)
-
-    def init(self, env, params, states, payload) -> Any:
-        return ()
-
-    def act(self, agent_state, obs, states, start, key, deterministic: bool, payload):
-        raise NotImplementedError
-
-
-class RandomAgent(Agent):
-    name = "random"
-
-    def act(self, agent_state, obs, states, start, key, deterministic, payload):
-        return agent_state, jax.random.uniform(key, (obs.shape[0], 2), minval=-1.0, maxval=1.0)
-
-
-class OracleAgent(Agent):
-    """Follows the shortest disc path with the real differential drive (``planning``)."""
-
-    name = "oracle"
-
-    def __init__(self, room_size: float, goal_radius: float):
-        self.room_size = room_size
-        self.goal_radius = goal_radius
-
-    def static_key(self):
-        return ("oracle", self.room_size, self.goal_radius)
-
-    def init(self, env, params, states, payload):
-        plan = jax.vmap(lambda rb, g: oracle_plan(rb, g, params.room_size, params.robot_radius))
-        return plan(states.row_bits, states.goal)
-
-    def act(self, plans, obs, states, start, key, deterministic, payload):
-        act = jax.vmap(
-            lambda pl, p, th, g: oracle_action(pl, p, th, g, self.room_size, self.goal_radius)
-        )
-        return plans, act(plans, states.pos, states.theta, states.goal)
-
-
-class PolicyAgent(Agent):
-    """A trained policy (``quicknav_core.train.Policy``)."""
-
-    def __init__(self, policy, name: str = "policy"):
-        self.policy = policy
-        self.name = name
-
-    @property
-    def payload(self):
-        return self.policy.params
-
-    def static_key(self):
-        return ("policy", self.policy.kind, self.policy.module)
-
-    def _policy(self, payload):
-        return dataclasses.replace(self.policy, params=payload)
-
-    def init(self, env, params, states, payload):
-        return self.policy.initial_carry(states.pos.shape[0])
-
-    def act(self, carry, obs, states, start, key, deterministic, payload):
-        return self._policy(payload).act(carry, obs, start, key, deterministic)
+__all__ = ["Agent", "Episodes", "PolicyAgent", "agent_from_run", "evaluate", "make_agent",
+           "run_episodes", "run_eval", "spl", "summarize", "wilson_interval"]  # fmt: skip
 
 
 # --------------------------------------------------------------------------- episodes
@@ -142,23 +57,23 @@ class Episodes:
 _RUNNERS: dict[Any, Any] = {}
 
 
-def _runner(env, agent: Agent, cfg: EvalConfig):
-    """The compiled evaluation for (env, agent's static part, cfg): f(keys, env_params, payload)."""
-    cache_key = (
-        env,
-        agent.static_key(),
-        cfg.episodes,
-        cfg.seed,
-        cfg.deterministic,
-        cfg.gif_episodes,
-    )
+class EvalStopped(Exception):
+    """``progress`` asked to stop between batches; ``done`` episodes of ``total`` had run."""
+
+    def __init__(self, done: int, total: int):
+        super().__init__(f"evaluation stopped after {done} of {total} episodes")
+        self.done = done
+        self.total = total
+
+
+def _runner(env, agent: Agent, batch: int, gif: int, deterministic: bool):
+    """The compiled evaluation of ``batch`` episodes: f(keys, act_keys, env_params, payload)."""
+    cache_key = (env, agent.static_key(), batch, gif, deterministic)
     if cache_key in _RUNNERS:
         return _RUNNERS[cache_key]
-    n = cfg.episodes
-    g = min(cfg.gif_episodes, n)
-    t_max = int(env.config.max_steps)
+    n, g = batch, gif
 
-    def run(keys, params, payload):
+    def run(keys, act_keys, params, payload):
         obs, states = jax.vmap(env.reset, in_axes=(0, None))(keys, params)
         ref = jax.vmap(
             lambda rb, s, goal: shortest_path_length(
@@ -171,12 +86,11 @@ def _runner(env, agent: Agent, cfg: EvalConfig):
         zeros_i, zeros_f = jnp.zeros((n,), jnp.int32), jnp.zeros((n,), jnp.float32)
         carry0 = (states, obs, agent_state, start, done, zeros_i, zeros_f, zeros_i, zeros_f,
                   jnp.zeros((n,), bool), jnp.zeros((n,), bool))  # fmt: skip
-        act_keys = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(cfg.seed), 2**30), t_max)
 
         def step(carry, key):
             (states, obs, agent_state, start, done, steps, ret, coll, plen, success, trunc) = carry
             agent_state, action = agent.act(
-                agent_state, obs, states, start, key, cfg.deterministic, payload
+                agent_state, obs, states, start, key, deterministic, payload
             )
             obs2, states2, reward, d, info = jax.vmap(env.step_env, in_axes=(0, 0, 0, None))(
                 keys, states, action, params
@@ -201,48 +115,61 @@ def _runner(env, agent: Agent, cfg: EvalConfig):
         final, (pos, theta, ranges, hits, actions) = jax.lax.scan(step, carry0, act_keys)
         _, _, _, _, _, steps, ret, coll, plen, success, trunc = final
         first = (states.theta[:g], states.lidar_ranges[:g], states.lidar_hits[:g])
-        return (
-            states,
-            ref,
-            steps,
-            ret,
-            coll,
-            plen,
-            success,
-            trunc,
-            pos,
-            theta,
-            ranges,
-            hits,
-            actions,
-            first,
-        )
+        return (states.pos, states.walls, states.goal, ref, steps, ret, coll, plen, success,
+                trunc, pos, theta, ranges, hits, actions, first)  # fmt: skip
 
     _RUNNERS[cache_key] = jax.jit(run)
     return _RUNNERS[cache_key]
 
 
-def run_episodes(env, params, agent: Agent, cfg: EvalConfig) -> Episodes:
-    """Run ``cfg.episodes`` fixed-seed episodes of ``agent`` at once."""
+def run_episodes(
+    env, params, agent: Agent, cfg: EvalConfig,
+    progress: Callable[[int, int], bool | None] | None = None,
+) -> Episodes:  # fmt: skip
+    """Run ``cfg.episodes`` fixed-seed episodes of ``agent``, ``EVAL_BATCH`` at a time.
+
+    Episode i starts from ``reset(fold_in(PRNGKey(seed), i))`` whatever the batch; a stochastic
+    agent's per-step keys are those of the one-batch evaluation in the first batch and fold in the
+    batch index after it. ``progress(done, total)`` is called after every batch and may return
+    True to stop (``EvalStopped``).
+    """
     n = cfg.episodes
-    keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(cfg.seed), i))(jnp.arange(n))
-    out = jax.device_get(_runner(env, agent, cfg)(keys, params, agent.payload))
-    (states, ref, steps, ret, coll, plen, success, trunc, pos, theta, ranges, hits, actions,
-     first) = out  # fmt: skip
-    traj = np.concatenate([np.asarray(states.pos)[None], np.asarray(pos)], axis=0).swapaxes(0, 1)
+    batch = min(n, EVAL_BATCH)
+    g_total = min(cfg.gif_episodes, n)
+    g = min(g_total, batch)
+    t_max = int(env.config.max_steps)
+    runner = _runner(env, agent, batch, g, cfg.deterministic)
+    base = jax.random.PRNGKey(cfg.seed)
+    act_base = jax.random.fold_in(base, 2**30)
+    parts: list[tuple] = []
+    for b in range(math.ceil(n / batch)):
+        index = jnp.arange(b * batch, (b + 1) * batch)
+        keys = jax.vmap(lambda i: jax.random.fold_in(base, i))(index)
+        act_keys = jax.random.split(act_base if b == 0 else jax.random.fold_in(act_base, b), t_max)
+        parts.append(jax.device_get(runner(keys, act_keys, params, agent.payload)))
+        done = min((b + 1) * batch, n)
+        if progress is not None and progress(done, n) and done < n:
+            raise EvalStopped(done, n)
+    start_pos, walls, goals, ref, steps, ret, coll, plen, success, trunc = (
+        np.concatenate([np.asarray(p[i]) for p in parts])[:n] for i in range(10)
+    )
+    pos = np.concatenate([np.asarray(p[10]) for p in parts], axis=1)[:, :n]  # (T, N, 2)
+    traj = np.concatenate([start_pos[None], pos], axis=0).swapaxes(0, 1)
+    # the pictures' episodes: the first g of each batch, as far as the first g_total episodes
+    gif_parts = [p for b, p in enumerate(parts) if b * batch < g_total]
+    take = lambda i, axis: np.concatenate([np.asarray(p[i]) for p in gif_parts], axis=axis)  # noqa: E731
+    first = [np.concatenate([np.asarray(p[15][k]) for p in gif_parts]) for k in range(3)]
     gif = {
-        "theta": np.concatenate([first[0][None], theta], axis=0).swapaxes(0, 1),
-        "lidar_ranges": np.concatenate([first[1][None], ranges], axis=0).swapaxes(0, 1),
-        "lidar_hits": np.concatenate([first[2][None], hits], axis=0).swapaxes(0, 1),
-        "actions": np.asarray(actions, np.float32).swapaxes(
-            0, 1
-        ),  # (G, T, 2): action t -> pose t+1
+        "theta": np.concatenate([first[0][None], take(11, 1)], axis=0).swapaxes(0, 1)[:g_total],
+        "lidar_ranges": np.concatenate([first[1][None], take(12, 1)], axis=0).swapaxes(0, 1)[:g_total],
+        "lidar_hits": np.concatenate([first[2][None], take(13, 1)], axis=0).swapaxes(0, 1)[:g_total],
+        # (G, T, 2): action t -> pose t+1
+        "actions": np.asarray(take(14, 1), np.float32).swapaxes(0, 1)[:g_total],
     }
     return Episodes(
-        success=np.asarray(success), truncated=np.asarray(trunc), steps=np.asarray(steps),
-        returns=np.asarray(ret), collisions=np.asarray(coll), path_length=np.asarray(plen),
-        reference_length=np.asarray(ref), trajectories=traj, walls=np.asarray(states.walls),
-        goals=np.asarray(states.goal), gif=gif,
+        success=success, truncated=trunc, steps=steps, returns=ret, collisions=coll,
+        path_length=plen, reference_length=ref, trajectories=traj, walls=walls, goals=goals,
+        gif=gif,
     )  # fmt: skip
 
 
@@ -295,39 +222,21 @@ def summarize(ep: Episodes, max_steps: int, step_length: float) -> dict[str, Any
     }
 
 
-def agent_for(policy: str, env_config: EnvConfig) -> Agent:
-    """A built-in baseline: 'random' or 'oracle'."""
-    if policy == "random":
-        return RandomAgent()
-    if policy == "oracle":
-        return OracleAgent(env_config.room_size, env_config.goal_radius)
-    raise ValueError(f"policy={policy!r}: allowed values are 'random' and 'oracle'")
-
-
-def agent_from_run(path: Path) -> tuple[Agent, EnvConfig, dict[str, Any]]:
-    """The trained policy of a run folder (or its checkpoint folder), with the run's env config."""
-    from quicknav_core.train.run import CHECKPOINT_DIR, load_run
-
-    path = Path(path)
-    run_dir = path.parent if path.name == CHECKPOINT_DIR else path
-    config, trainer, state, meta = load_run(run_dir)
-    return (
-        PolicyAgent(trainer.policy(state), name=f"{config.trainer_kind}:{run_dir.name}"),
-        config.env,
-        meta,
-    )
-
-
 def evaluate(
-    env_config: EnvConfig, agent: Agent, cfg: EvalConfig, out_dir: Path | None = None
-) -> tuple[dict[str, Any], Episodes]:
-    """Evaluate ``agent``; with ``out_dir`` write eval.json, trajectories.png and episodes.gif."""
+    env_config: EnvConfig, agent: Agent, cfg: EvalConfig, out_dir: Path | None = None,
+    progress: Callable[[int, int], bool | None] | None = None,
+) -> tuple[dict[str, Any], Episodes]:  # fmt: skip
+    """Evaluate ``agent``; with ``out_dir`` write eval.json, trajectories.png and episodes.gif.
+
+    ``progress(done, total)`` after every batch of episodes may return True to stop
+    (``EvalStopped``: nothing is written).
+    """
     env, params = env_config.build(cfg.split)
-    ep = run_episodes(env, params, agent, cfg)
+    ep = run_episodes(env, params, agent, cfg, progress)
     step_length = env_config.max_wheel_speed * env_config.dt
     result = {
         "agent": agent.name,
-        "eval_config": cfg.model_dump(),
+        "eval_config": cfg.model_dump(mode="json"),
         "env_config": env_config.model_dump(mode="json"),
         "metrics": summarize(ep, env_config.max_steps, step_length),
         "per_episode": {
@@ -348,6 +257,29 @@ def evaluate(
             if cfg.gif_episodes:
                 draw_gif(ep, env_config, out_dir / "episodes.gif", title=agent.name)
     return result, ep
+
+
+def make_agent(cfg: EvalConfig, run_dir: Path | str | None = None) -> tuple[Agent, EnvConfig]:
+    """The agent an EvalConfig names and the env it runs in: a baseline in ``cfg.env`` (default
+    env if unset), or the trained policy of ``run_dir`` (default: ``cfg.source`` read as a run
+    folder) in ``cfg.env`` or else the run's own env."""
+    if cfg.policy != "trained":
+        env = cfg.env or EnvConfig()
+        return baseline_agent(cfg.policy, env), env
+    where = run_dir if run_dir is not None else cfg.source
+    if where is None:
+        raise ValueError("policy='trained' needs a source: the run folder of the trained policy")
+    agent, run_env, _ = agent_from_run(Path(where))
+    return agent, cfg.env or run_env
+
+
+def run_eval(
+    cfg: EvalConfig, out_dir: Path | None = None, run_dir: Path | str | None = None,
+    progress: Callable[[int, int], bool | None] | None = None,
+) -> tuple[dict[str, Any], Episodes]:  # fmt: skip
+    """Evaluate what a (resolved) EvalConfig names; see ``make_agent`` and ``evaluate``."""
+    agent, env = make_agent(cfg, run_dir)
+    return evaluate(env, agent, cfg, out_dir, progress)
 
 
 # --------------------------------------------------------------------------- pictures

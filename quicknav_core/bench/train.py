@@ -14,8 +14,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from quicknav_core.config import TrainConfig, apply_overrides
-from quicknav_core.train.presets import get_preset
+from quicknav_core.config import get_preset, resolve_train
+from quicknav_core.config.overrides import as_dict
 
 # (row name, preset, chunk size in env steps)
 ROWS = (
@@ -44,15 +44,13 @@ class TrainBenchRow:
 
 
 def bench_row(
-    name: str, preset: str, chunk_steps: int, chunks: int, overrides: list[str]
+    name: str, preset: str, chunk_steps: int, chunks: int, overrides: dict | list[str] | None = None
 ) -> TrainBenchRow:
     from quicknav_core.train.trainers import make_trainer
 
-    cfg: TrainConfig = get_preset(preset)
-    data = cfg.model_dump(mode="json")
-    data["chunk_steps"] = chunk_steps
-    data["total_steps"] = max(chunk_steps * (chunks + 1), cfg.steps_per_update)
-    cfg = apply_overrides(TrainConfig.model_validate(data), overrides)
+    steps = max(chunk_steps * (chunks + 1), get_preset(preset).steps_per_update)
+    cfg = resolve_train({"preset": preset, "overrides": {
+        "chunk_steps": chunk_steps, "total_steps": steps, **as_dict(overrides)}})  # fmt: skip
     trainer = make_trainer(cfg)
     state = trainer.init_state()
     t0 = time.perf_counter()
@@ -73,10 +71,10 @@ def bench_row(
 def run_train_bench(
     names: list[str] | None = None,
     chunks: int = 3,
-    overrides: list[str] | None = None,
+    overrides: dict | list[str] | None = None,
     progress=None,
 ) -> dict[str, Any]:
-    from quicknav_core.bench import machine_info
+    from quicknav_core.bench.machine import machine_info
 
     say = progress or (lambda _m: None)
     rows = []
@@ -84,7 +82,7 @@ def run_train_bench(
         if names and name not in names:
             continue
         say(f"{name} ({preset})")
-        rows.append(bench_row(name, preset, chunk, chunks, overrides or []))
+        rows.append(bench_row(name, preset, chunk, chunks, overrides))
     return {"machine": machine_info(), "chunks": chunks, "rows": [asdict(r) for r in rows]}
 
 

@@ -1,0 +1,265 @@
+"""The asynchronous REST client: runs the core's operations with ``httpx.AsyncClient`` and
+``asyncio.sleep``. Same methods as the sync client, as coroutines."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator, Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+import httpx
+
+from quicknav_client.rest import core
+from quicknav_client.rest.core import (
+    END,
+    Close,
+    Emit,
+    JobFields,
+    JobList,
+    Lines,
+    NextLine,
+    Operation,
+    ReadBody,
+    SaveBody,
+    Send,
+    Sleep,
+)
+
+
+class AsyncJob(JobFields):
+    """A job on the server (from :class:`AsyncQuickNavClient`); methods are coroutines."""
+
+    _client: AsyncQuickNavClient
+
+    async def refresh(self) -> AsyncJob:
+        """Reload the job's state from the server."""
+        self._update(await self._client._get_json(f"/jobs/{self.id}"))
+        return self
+
+    def events(self, after: int = 0) -> AsyncIterator[dict]:
+        """The job's events, live; resumes after drops (``async for``)."""
+        return self._client.events(self.id, after=after)
+
+    async def wait(
+        self,
+        progress: bool = False,
+        timeout: float | None = None,
+        on_event: Callable[[dict], None] | None = None,
+    ) -> AsyncJob:
+        """Follow the job's event stream until it finishes, then refresh; raises WaitTimeout."""
+        op = core.wait(self._client._policy, self, progress, timeout, on_event)
+        return await self._client._run(op)
+
+    async def metrics_history(self) -> list[dict]:
+        """One row per training chunk, from the job's metrics.jsonl."""
+        return (await self._client._get_json(f"/jobs/{self.id}/metrics"))["metrics"]
+
+    async def cancel(self) -> AsyncJob:
+        """Cancel: a queued job at once, a running one at its next chunk boundary."""
+        self._update(await self._client._json("POST", f"/jobs/{self.id}/cancel"))
+        return self
+
+    async def delete(self) -> None:
+        """Delete a finished job and its artifacts."""
+        await self._client._json("DELETE", f"/jobs/{self.id}")
+
+    async def artifacts(self) -> list[dict]:
+        """The job's files with their sizes."""
+        return (await self._client._get_json(f"/jobs/{self.id}/artifacts"))["artifacts"]
+
+    async def download(self, name: str, path: str | Path | None = None) -> Path:
+        """Stream an artifact to ``path`` (a file or a folder; default: its name in the cwd)."""
+        return await self._client.download(self.id, name, path)
+
+
+class _Done(Exception):
+    """The operation returned (its value travels here: an async generator cannot return one)."""
+
+    def __init__(self, value: Any):
+        self.value = value
+
+
+class AsyncQuickNavClient:
+    """Asynchronous client (httpx.AsyncClient): the methods of QuickNavClient, as coroutines."""
+
+    def __init__(
+        self,
+        base_url: str = core.DEFAULT_URL,
+        token: str | None = None,
+        timeout: float | httpx.Timeout | None = 30.0,
+        retries: int = 3,
+        backoff_s: float = 0.5,
+        transport: httpx.AsyncBaseTransport | None = None,
+    ):
+        if retries < 0:
+            raise ValueError(f"retries={retries}: must be >= 0")
+        self.base_url = base_url.rstrip("/")
+        self.retries = retries
+        self.backoff_s = backoff_s
+        self._http = httpx.AsyncClient(
+            base_url=self.base_url, headers=core.default_headers(token),
+            timeout=core.make_timeout(timeout), transport=transport,
+        )  # fmt: skip
+        self._policy = core.Policy(self.base_url, retries, backoff_s, self._http.timeout)
+
+    # -- running operations
+    async def _perform(self, effect: Any, opened: list[httpx.Response]) -> Any:
+        if isinstance(effect, Send):
+            request = self._http.build_request(effect.method, effect.path, **effect.kwargs)
+            response = await self._http.send(request, stream=effect.stream)
+            if effect.stream:
+                opened.append(response)
+            return response
+        if isinstance(effect, Sleep):
+            await asyncio.sleep(effect.seconds)
+        elif isinstance(effect, Lines):
+            return effect.response.aiter_lines()
+        elif isinstance(effect, NextLine):
+            return await anext(effect.lines, END)
+        elif isinstance(effect, ReadBody):
+            await effect.response.aread()
+        elif isinstance(effect, Close):
+            await effect.response.aclose()
+        elif isinstance(effect, SaveBody):
+            with effect.path.open("wb") as f:
+                async for chunk in effect.response.aiter_bytes():
+                    f.write(chunk)
+        else:  # pragma: no cover - a core operation yielded something new
+            raise TypeError(f"unknown effect {effect!r}")
+        return None
+
+    async def _steps(self, op: Operation) -> AsyncIterator[Any]:
+        """Drive ``op``; yields what it emits, then raises ``_Done`` with its result."""
+        opened: list[httpx.Response] = []
+        result: Any = None
+        error: BaseException | None = None
+        try:
+            while True:
+                try:
+                    effect = op.throw(error) if error is not None else op.send(result)
+                except StopIteration as stop:
+                    raise _Done(stop.value) from None
+                result, error = None, None
+                if isinstance(effect, Emit):
+                    yield effect.value
+                    continue
+                try:
+                    result = await self._perform(effect, opened)
+                except Exception as e:  # the operation decides: retry, or raise
+                    error = e
+        finally:
+            op.close()
+            for response in opened:
+                await response.aclose()
+
+    async def _run(self, op: Operation) -> Any:
+        try:
+            async for _ in self._steps(op):
+                pass  # an operation run here emits nothing
+        except _Done as done:
+            return done.value
+        raise AssertionError("unreachable: an operation ends with _Done")  # pragma: no cover
+
+    async def _iterate(self, op: Operation) -> AsyncIterator[Any]:
+        try:
+            async for value in self._steps(op):
+                yield value
+        except _Done:
+            return
+
+    async def _json(self, method: str, path: str, **kw) -> Any:
+        return await self._run(core.request_json(self._policy, method, path, **kw))
+
+    async def _get_json(self, path: str, **kw) -> Any:
+        return await self._json("GET", path, **kw)
+
+    async def _submit(self, path: str, body: dict, idempotency_key: str | None) -> AsyncJob:
+        data = await self._run(core.submit(self._policy, path, body, idempotency_key))
+        return AsyncJob(self, data)
+
+    # -- public API
+    async def aclose(self) -> None:
+        """Close the connection pool."""
+        await self._http.aclose()
+
+    async def __aenter__(self) -> AsyncQuickNavClient:
+        return self
+
+    async def __aexit__(self, *exc) -> None:
+        await self.aclose()
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.base_url!r})"
+
+    async def health(self) -> dict:
+        """GET /healthz: the API process is up."""
+        return await self._get_json("/healthz")
+
+    async def ready(self) -> dict:
+        """GET /readyz: the job store answers."""
+        return await self._get_json("/readyz")
+
+    async def presets(self) -> dict[str, dict]:
+        """The server's training presets."""
+        return await self._get_json("/presets")
+
+    async def train(
+        self,
+        config: Mapping | str | None = None,
+        preset: str | None = None,
+        overrides: Mapping[str, Any] | None = None,
+        idempotency_key: str | None = None,
+        **fields: Any,
+    ) -> AsyncJob:
+        """Submit a train job: a preset (or config) plus dotted ``overrides`` and top-level fields."""
+        body = core.train_body(config, preset, overrides, fields)
+        return await self._submit("/jobs/train", body, idempotency_key)
+
+    async def sweep(
+        self,
+        config: Mapping | str | None = None,
+        trials: int | None = None,
+        parallel: int | None = None,
+        total_steps: int | None = None,
+        overrides: Mapping[str, Any] | None = None,
+        idempotency_key: str | None = None,
+    ) -> AsyncJob:
+        """Submit a sweep job: a SweepConfig dict, or a built-in space name."""
+        body = core.sweep_body(config, trials, parallel, total_steps, overrides)
+        return await self._submit("/jobs/sweep", body, idempotency_key)
+
+    async def evaluate(
+        self,
+        job: Any = None,
+        policy: str | None = None,
+        episodes: int = 100,
+        seed: int = 0,
+        env: Mapping[str, Any] | None = None,
+        split: str = "test",
+        deterministic: bool = True,
+        stochastic: bool | None = None,
+        idempotency_key: str | None = None,
+    ) -> AsyncJob:
+        """Submit an eval job: a train job's checkpoint, or a ``random``/``oracle`` baseline."""
+        body = core.eval_body(job, policy, episodes, seed, env, split, deterministic, stochastic)
+        return await self._submit("/jobs/eval", body, idempotency_key)
+
+    async def jobs(
+        self, status: str | None = None, kind: str | None = None, limit: int = 50, offset: int = 0
+    ) -> JobList:
+        """A page of jobs, newest first; ``.count`` is the total matching the filter."""
+        page = await self._get_json("/jobs", params=core.list_params(status, kind, limit, offset))
+        return JobList([AsyncJob(self, d) for d in page["data"]], page["count"])
+
+    async def job(self, job_id: str) -> AsyncJob:
+        """One job by id (NotFound if there is none)."""
+        return AsyncJob(self, await self._get_json(f"/jobs/{job_id}"))
+
+    def events(self, job_id: str, after: int = 0) -> AsyncIterator[dict]:
+        """A job's events after event id ``after``, live, until the terminal one."""
+        return self._iterate(core.events(self._policy, job_id, after, None))
+
+    async def download(self, job_id: str, name: str, path: str | Path | None = None) -> Path:
+        """Stream a job's artifact to a file (written whole or not at all); returns its path."""
+        return await self._run(core.download(self._policy, job_id, name, path))

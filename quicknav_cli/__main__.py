@@ -1,0 +1,3 @@
+from quicknav_cli.main import main
+
+main()

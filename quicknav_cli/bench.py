@@ -1,0 +1,199 @@
+"""`quicknav bench`: figures, never timed tests. Env throughput (JAX vs the NumPy twin), training
+throughput at the paper's sizes, and the paper's Tables 1 and 2 as a learning benchmark."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+
+from quicknav_cli.common import (
+    SetOpt,
+    console,
+    enable_compilation_cache,
+    expose_cpu_devices,
+    fail,
+    sets,
+)
+from quicknav_core.config import ConfigError
+
+app = typer.Typer(
+    help="Benchmarks. Without a subcommand: environment throughput, JAX vs the NumPy twin.",
+    invoke_without_command=True,
+)
+
+
+@app.callback()
+def bench_env(
+    ctx: typer.Context,
+    grid: Annotated[
+        list[int] | None, typer.Option("--grid", help="Grid sizes (default 4 8 16).")
+    ] = None,
+    batch: Annotated[
+        list[int] | None,
+        typer.Option("--batch", help="vmap batch sizes (default 64 1024 4096 16384)."),
+    ] = None,
+    beams: Annotated[int, typer.Option(min=1, max=1024, help="Lidar beams.")] = 16,
+    steps: Annotated[
+        int, typer.Option(min=100, max=100_000_000, help="Steps per timed run.")
+    ] = 100_000,
+    repeats: Annotated[int, typer.Option(min=3, max=100, help="Timed repeats (median).")] = 3,
+    budget: Annotated[
+        float, typer.Option("--budget-s", min=10, help="Time budget of the Python-driven loops, s.")
+    ] = 240.0,
+    final_obs: Annotated[
+        bool, typer.Option(help="Also compute info['final_obs'] (a second lidar cast).")
+    ] = False,
+    cpu_devices: Annotated[
+        int,
+        typer.Option(
+            min=0,
+            max=64,
+            help="CPU cores exposed to JAX as devices, batches sharded over them (0: all cores, max 8).",
+        ),
+    ] = 0,
+    out: Annotated[Path, typer.Option(help="Folder for bench.json and the PNGs.")] = Path("bench"),
+) -> None:
+    """Environment throughput: NumPy twin vs JAX (1 env, scan, vmapped batches) per grid size."""
+    if ctx.invoked_subcommand is not None:
+        return
+    expose_cpu_devices(cpu_devices or min(os.cpu_count() or 1, 8))
+    from rich.table import Table
+
+    from quicknav_core.bench.env import (
+        DEFAULT_BATCHES,
+        DEFAULT_GRIDS,
+        GPU_EXTRA_BATCHES,
+        BenchConfig,
+        format_table,
+        run_bench,
+        write_outputs,
+    )
+
+    grids = grid or list(DEFAULT_GRIDS)
+    bad = [g for g in grids if not 4 <= g <= 128]
+    if bad:
+        fail(f"--grid {bad[0]}: allowed range 4..128")
+    if batch and min(batch) < 1:
+        fail(f"--batch {min(batch)}: allowed range >= 1")
+    import jax
+
+    batches = batch or list(DEFAULT_BATCHES)
+    if batch is None and jax.default_backend() == "gpu":
+        batches += list(GPU_EXTRA_BATCHES)
+    cfg = BenchConfig(
+        grids=grids, batches=batches, beams=beams, steps=steps, repeats=repeats, budget_s=budget,
+        final_obs=final_obs,
+    )  # fmt: skip
+    with console.status("benchmarking...") as status:
+        report = run_bench(cfg, progress=lambda msg: status.update(msg))
+    table = Table(
+        title=f"QuickNav env throughput ({report.machine['cpu']}, {report.machine['jax_backend']})"
+    )
+    for col in (
+        "grid",
+        "impl",
+        "envs",
+        "steps/s",
+        f"s per {steps:,}",
+        "compile s",
+        "mem MiB",
+        "dev",
+        "note",
+    ):
+        table.add_column(col, justify="right" if col not in ("impl", "note") else "left")
+    for row in format_table(report):
+        table.add_row(*row)
+    Console(width=max(console.width, 120)).print(table)
+    for t in report.targets:
+        mark = "[green]met[/]" if t["met"] else "[red]NOT met[/]"
+        console.print(f"target: {t['target']}: measured {t['measured']:,} -> {mark}")
+    paths = write_outputs(report, out)
+    console.print("wrote " + ", ".join(str(p) for p in paths.values()))
+
+
+@app.command("train")
+def bench_train(
+    row: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--row",
+            help="Rows to run (ppo-mlp sac-mlp td3-mlp rppo-mlp-memory rppo-lstm rppo-gtrxl).",
+        ),
+    ] = None,
+    chunks: Annotated[int, typer.Option(min=1, max=100, help="Timed chunks per row (median).")] = 3,
+    set_: SetOpt = None,
+    out: Annotated[Path, typer.Option(help="Folder for bench_train.json.")] = Path("bench"),
+) -> None:
+    """End-to-end training throughput at the paper's network sizes (env steps/s, compile excluded)."""
+    from rich.table import Table
+
+    from quicknav_core.bench.train import ROWS, run_train_bench, write_report
+
+    known = [r[0] for r in ROWS]
+    bad = [r for r in row or [] if r not in known]
+    if bad:
+        fail(f"--row {bad[0]!r}: allowed values are {', '.join(known)}")
+    enable_compilation_cache()
+    with console.status("benchmarking training...") as status:
+        try:
+            report = run_train_bench(row, chunks, sets(set_), progress=lambda m: status.update(m))
+        except ConfigError as e:
+            fail(str(e))
+    table = Table(
+        title=f"Training throughput ({report['machine']['cpu']}, {report['machine']['jax_backend']})"
+    )
+    for col in ("row", "trainer", "network", "envs", "env steps/s", "first chunk s", "target"):
+        table.add_column(col)
+    for r in report["rows"]:
+        target = (
+            ""
+            if r["target"] is None
+            else (
+                f"{r['target']:,.0f} "
+                + ("met" if r["env_steps_per_s"] >= r["target"] else "NOT met")
+            )
+        )
+        table.add_row(r["name"], r["trainer"], r["network"], str(r["num_envs"]),
+                      f"{r['env_steps_per_s']:,.0f}", f"{r['compile_and_first_chunk_s']:.1f}", target)  # fmt: skip
+    Console(width=max(console.width, 110)).print(table)
+    console.print(f"wrote {write_report(report, out)}")
+
+
+@app.command("learning")
+def bench_learning(
+    row: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--row",
+            help="Presets to train now (default all): paper-ppo paper-sac paper-td3 paper-mlp paper-lstm paper-gtrxl.",
+        ),
+    ] = None,
+    seeds: Annotated[int, typer.Option(min=1, max=10, help="Training seeds per row.")] = 3,
+    scale: Annotated[
+        float,
+        typer.Option(min=0.0001, max=10.0, help="Scale of step and time budgets (smoke runs)."),
+    ] = 1.0,
+    out: Annotated[Path, typer.Option(help="Folder for report.md and report.json.")] = Path(
+        "benchmarks/results/learning"
+    ),
+    runs: Annotated[
+        Path, typer.Option(help="Folder for the training runs (large; not for git).")
+    ] = Path("runs/learning"),
+) -> None:
+    """The paper's Tables 1 and 2: train with several seeds, evaluate on held-out rooms, report."""
+    from quicknav_core.bench.learning import ROWS, run_learning_bench
+
+    known = [r.preset for r in ROWS]
+    bad = [r for r in row or [] if r not in known]
+    if bad:
+        fail(f"--row {bad[0]!r}: allowed values are {', '.join(known)}")
+    enable_compilation_cache()
+    markdown, _ = run_learning_bench(
+        out, runs, row, seeds, scale, say=lambda m: console.print(m, highlight=False)
+    )
+    console.print(markdown, highlight=False, markup=False, soft_wrap=True)
+    console.print(f"wrote {out}/report.md and report.json")

@@ -1,0 +1,133 @@
+"""What every command group shares: the console, errors that exit, options, and process setup."""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+from pathlib import Path
+from typing import Annotated, Any, NoReturn
+
+import typer
+from rich.console import Console
+
+console = Console()
+
+SetOpt = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--set",
+        help="Override a config field (dotted key, JSON value): --set env.grid_size=8"
+        " --set env.reward.goal_reward=20 --set algorithm.learning_rate=1e-3",
+    ),
+]
+EnvSetOpt = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--set", help="Override an env field: --set grid_size=8 --set reward.goal_reward=20"
+    ),
+]
+PrintConfigOpt = Annotated[
+    bool,
+    typer.Option(
+        "--print-config",
+        help="Print the resolved config as JSON (what a job would store) and exit without running.",
+    ),
+]
+
+
+def fail(message: str, code: int = 2) -> NoReturn:
+    """Print an error a person can act on and exit (the message is never read as rich markup)."""
+    console.print("[bold red]error:[/] ", end="", highlight=False)
+    console.print(message, highlight=False, soft_wrap=True, markup=False)
+    raise typer.Exit(code)
+
+
+def sets(items: list[str] | None) -> dict[str, Any]:
+    """``--set key=value`` items as a dict of dotted keys with JSON values; exits if malformed."""
+    from quicknav_core.config import parse_assignments
+    from quicknav_core.config.overrides import OverrideError
+
+    try:
+        return parse_assignments(items or [])
+    except OverrideError as e:
+        fail(f"--set {e}")
+
+
+def read_json(path: Path, what: str = "--config") -> dict[str, Any]:
+    """A JSON object from a file; exits with a clear message if missing or malformed."""
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        fail(f"{what} {path}: no such file")
+    except json.JSONDecodeError as e:
+        fail(f"{what} {path}: not valid JSON ({e})")
+    if not isinstance(data, dict):
+        fail(f"{what} {path}: expected a JSON object")
+    return data
+
+
+def resolved(resolve, request: dict[str, Any], **kw):
+    """``resolve(request)``, or exit with one line per bad field (config paths, as --set names them)."""
+    from quicknav_core.config import ConfigError
+
+    try:
+        return resolve(request, **kw)
+    except ConfigError as e:
+        lines = []
+        for item in e.items:
+            loc = item["loc"]
+            where = (
+                f"--set {loc[1]}" if loc[:1] == ["overrides"] and len(loc) > 1
+                else item.get("field") or ".".join(loc) or e.title
+            )  # fmt: skip
+            got = f" (got {item['input']!r})" if "input" in item else ""
+            lines.append(f"{where}: {item['msg']}{got}")
+        fail("invalid configuration:\n  " + "\n  ".join(lines))
+
+
+def print_config(config) -> None:
+    """A resolved config as JSON on stdout (nothing else printed)."""
+    print(config.model_dump_json(indent=2))
+
+
+def expose_cpu_devices(count: int) -> None:
+    """Let XLA's CPU backend present ``count`` devices, one per core, so work can be sharded.
+
+    Only effective before JAX initialises its backends; GPU/TPU devices are not affected.
+    """
+    if "jax" in sys.modules and count > 1:
+        import jax
+
+        if jax.local_device_count() == count:
+            return
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "xla_force_host_platform_device_count" not in flags:
+        os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={count}".strip()
+
+
+def enable_compilation_cache() -> None:
+    """Turn on JAX's persistent compilation cache (CLI processes only; library code never does)."""
+    import jax
+
+    cache = os.environ.get("QUICKNAV_JAX_CACHE", str(Path.home() / ".cache" / "quicknav" / "jax"))
+    if cache:
+        jax.config.update("jax_compilation_cache_dir", cache)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+
+
+def service_settings(**overrides):
+    """Service settings from QUICKNAV_* variables plus CLI options; exits on a bad value."""
+    from pydantic import ValidationError
+
+    try:
+        from service.settings import Settings
+    except ImportError as e:
+        fail(
+            f"the job service is not installed ({e.name} is missing): pip install 'quicknav[service]'"
+        )
+    try:
+        return Settings(**{k: v for k, v in overrides.items() if v is not None})
+    except ValidationError as e:
+        fail("invalid service settings (QUICKNAV_* variables / options):\n  " + "\n  ".join(
+            f"QUICKNAV_{'_'.join(map(str, err['loc'])).upper()}: {err['msg']}" for err in e.errors()))  # fmt: skip

@@ -1,0 +1,144 @@
+"""`quicknav env`: look at the environment: a demo episode (PNG + GIF) and generated rooms."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from quicknav_cli.common import EnvSetOpt, console, enable_compilation_cache, fail, read_json, sets
+from quicknav_core.config import EnvConfig
+
+app = typer.Typer(
+    help="Look at the environment: demo episodes and generated rooms.", no_args_is_help=True
+)
+
+ConfigOpt = Annotated[
+    Path | None,
+    typer.Option("--config", help="EnvConfig JSON file (fields not given keep defaults)."),
+]
+# the demo's policies: a scripted one (the oracle: shortest disc path, real drive) or random
+DEMO_POLICIES = ("oracle", "scripted", "random")
+
+
+def env_config(config: Path | None, overrides: list[str] | None) -> EnvConfig:
+    """EnvConfig from an optional JSON file plus --set overrides; exits with a clear message if bad."""
+    from quicknav_cli.common import resolved
+    from quicknav_core.config import resolve_eval
+
+    data = read_json(config) if config else {}
+    # the env of a baseline evaluation is resolved exactly like this: one path for every door
+    request = {"policy": "random", "env": {**data, **sets(overrides)}}
+    return resolved(resolve_eval, request).env
+
+
+@dataclass
+class DemoResult:
+    png: Path
+    gif: Path
+    steps: int
+    goal_reached: bool
+    episode_return: float
+    collisions: int
+
+
+def run_demo(config: EnvConfig, out_dir: Path, policy: str = "oracle", seed: int = 0) -> DemoResult:
+    """One episode in a train room, driven by the oracle (``scripted``) or at random, drawn."""
+    from quicknav_core.config import EvalConfig
+    from quicknav_core.env import render
+    from quicknav_core.eval.evaluate import run_episodes
+    from quicknav_core.eval.scripted import baseline_agent
+
+    if policy not in DEMO_POLICIES:
+        raise ValueError(f"policy={policy!r}: allowed values are {', '.join(DEMO_POLICIES)}")
+    agent = baseline_agent("random" if policy == "random" else "oracle", config)
+    env, params = config.build("train")
+    cfg = EvalConfig(episodes=1, seed=seed, split="train", gif_episodes=1, pictures=False)
+    ep = run_episodes(env, params, agent, cfg)
+    steps = int(ep.steps[0])
+    snaps = [
+        {"walls": ep.walls[0], "pos": ep.trajectories[0, t], "theta": ep.gif["theta"][0, t],
+         "goal": ep.goals[0], "lidar_ranges": ep.gif["lidar_ranges"][0, t],
+         "lidar_hits": ep.gif["lidar_hits"][0, t]}
+        for t in range(steps + 1)
+    ]  # fmt: skip
+    reached = bool(ep.success[0])
+    ret = float(ep.returns[0])
+    out_dir.mkdir(parents=True, exist_ok=True)
+    title = f"{policy} policy: {'goal reached' if reached else 'timed out'}, return {ret:.1f}"
+    traj = ep.trajectories[0, : steps + 1]
+    png = render.save_png(
+        render.render_frame(snaps[-1], config, traj, title=title, size_px=480), out_dir / "demo.png"
+    )
+    frames = render.episode_frames(snaps[:: max(1, len(snaps) // 150)], config, title=policy)
+    gif = render.save_gif(frames, out_dir / "demo.gif", fps=12)
+    return DemoResult(png, gif, steps, reached, ret, int(ep.collisions[0]))
+
+
+def draw_rooms(
+    out: Path, grid_sizes=(4, 8, 16), per_row: int = 5, seed: int = 0, room_size: float = 8.0
+) -> Path:
+    """The paper's Figure 1: generated rooms for several grid sizes."""
+    from quicknav_core.env import render
+    from quicknav_core.env.rooms import make_room_bank
+
+    rooms = {}
+    for g in grid_sizes:
+        radius = min(0.15, 0.45 * room_size / g)
+        cfg = EnvConfig(
+            grid_size=g,
+            room_size=room_size,
+            room_seed=seed,
+            train_rooms=per_row,
+            robot_radius=radius,
+            max_wheel_speed=min(1.0, room_size / g / 0.1),
+        )
+        rooms[g] = list(make_room_bank(cfg, "train"))
+    return render.rooms_figure(rooms, room_size, out)
+
+
+@app.command("demo")
+def demo(
+    out: Annotated[Path, typer.Option(help="Folder for demo.png and demo.gif.")] = Path("demo"),
+    policy: Annotated[
+        str,
+        typer.Option(help="'oracle' (alias 'scripted': shortest disc path, real drive) or 'random'."),
+    ] = "oracle",
+    seed: Annotated[int, typer.Option(min=0, help="Seed of the episode.")] = 0,
+    config: ConfigOpt = None,
+    set_: EnvSetOpt = None,
+) -> None:
+    """Run one episode and write a PNG of its trajectory and a GIF with lidar rays."""
+    cfg = env_config(config, set_)
+    if policy not in DEMO_POLICIES:
+        fail(f"--policy {policy!r}: allowed values are {', '.join(DEMO_POLICIES)}")
+    enable_compilation_cache()
+    with console.status("running one episode and drawing it..."):
+        result = run_demo(cfg, out, policy=policy, seed=seed)
+    outcome = "reached the goal" if result.goal_reached else "timed out"
+    console.print(
+        f"{policy} policy {outcome} after {result.steps} steps, return {result.episode_return:.1f},"
+        f" {result.collisions} wall collisions"
+    )
+    console.print(f"wrote {result.png}\nwrote {result.gif}")
+
+
+@app.command("rooms")
+def rooms(
+    out: Annotated[Path, typer.Option(help="PNG file to write.")] = Path("rooms.png"),
+    grid: Annotated[
+        list[int] | None, typer.Option("--grid", help="Grid sizes (default 4 8 16).")
+    ] = None,
+    per_row: Annotated[int, typer.Option(min=1, max=12, help="Rooms per grid size.")] = 5,
+    seed: Annotated[int, typer.Option(min=0, help="Room seed.")] = 0,
+) -> None:
+    """Draw generated rooms for several grid sizes (the paper's room-generation figure)."""
+    grids = grid or [4, 8, 16]
+    bad = [g for g in grids if not 4 <= g <= 128]
+    if bad:
+        fail(f"--grid {bad[0]}: allowed range 4..128")
+    path = draw_rooms(out, tuple(grids), per_row=per_row, seed=seed)
+    console.print(f"wrote {path}")
+

@@ -1,0 +1,128 @@
+"""`quicknav eval`: a trained run or a baseline on held-out rooms: success, SPL, steps, collisions."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+from quicknav_cli.common import (
+    EnvSetOpt,
+    PrintConfigOpt,
+    console,
+    enable_compilation_cache,
+    fail,
+    print_config,
+    read_json,
+    resolved,
+    sets,
+)
+
+
+def run_env(source: str):
+    """The env a run folder's policy trained in (``resolve_eval``'s lookup for the CLI)."""
+    from quicknav_core.config import ConfigError
+    from quicknav_core.train.run import CHECKPOINT_DIR, read_config
+
+    path = Path(source)
+    run_dir = path.parent if path.name == CHECKPOINT_DIR else path
+    try:
+        return read_config(run_dir).env
+    except FileNotFoundError as e:
+        raise ConfigError.single(["run"], str(e)) from None
+
+
+def eval_request(
+    run: Path | None, policy: str | None, episodes: int, seed: int, deterministic: bool,
+    split: str, config: Path | None, overrides: list[str] | None,
+) -> dict[str, Any]:  # fmt: skip
+    """The eval request the flags describe (what the SDK would send, with a job for the run)."""
+    if (run is None) == (policy is None):
+        fail("give either a run folder or --policy random|oracle")
+    if policy is not None and policy not in ("random", "oracle"):
+        fail(f"--policy {policy!r}: allowed values are random and oracle")
+    env = {**(read_json(config) if config else {}), **sets(overrides)}
+    request: dict[str, Any] = {"episodes": episodes, "seed": seed, "split": split,
+                               "deterministic": deterministic, "env": env}  # fmt: skip
+    if run is not None:
+        request["run"] = str(run)
+    else:
+        request["policy"] = policy
+    return request
+
+
+def eval_cmd(
+    run: Annotated[
+        Path | None,
+        typer.Argument(help="Run folder (or its checkpoint folder) from quicknav train."),
+    ] = None,
+    policy: Annotated[
+        str | None, typer.Option(help="Baseline instead of a run: random or oracle.")
+    ] = None,
+    episodes: Annotated[
+        int, typer.Option(min=1, max=100_000, help="Episodes (fixed seeds).")
+    ] = 100,
+    seed: Annotated[int, typer.Option(min=0, help="Episode seed: same seed, same episodes.")] = 0,
+    deterministic: Annotated[
+        bool, typer.Option("--deterministic/--stochastic", help="Act with the mean, or sample.")
+    ] = True,
+    split: Annotated[str, typer.Option(help="Room bank: test (held out) or train.")] = "test",
+    config: Annotated[
+        Path | None, typer.Option("--config", help="EnvConfig JSON file of a baseline's env.")
+    ] = None,
+    set_: EnvSetOpt = None,
+    out: Annotated[
+        Path | None, typer.Option(help="Folder for eval.json and pictures (default RUN/eval).")
+    ] = None,
+    print_only: PrintConfigOpt = False,
+) -> None:
+    """Evaluate a trained run or a baseline on held-out rooms: success, SPL, steps, collisions."""
+    from quicknav_core.config import resolve_eval
+
+    if split not in ("test", "train"):
+        fail(f"--split {split!r}: allowed values are test and train")
+    request = eval_request(run, policy, episodes, seed, deterministic, split, config, set_)
+    cfg = resolved(resolve_eval, request, trained_env=run_env)
+    if print_only:
+        print_config(cfg)
+        return
+    from quicknav_core.eval.evaluate import run_eval
+
+    if run is not None:
+        run_dir = run.parent if run.name == "checkpoint" else run
+        out_dir = out or (run_dir / "eval")
+    else:
+        run_dir = None
+        out_dir = out or Path("eval") / policy
+    enable_compilation_cache()
+    with console.status(f"evaluating on {episodes} episodes..."):
+        try:
+            result, _ = run_eval(cfg, out_dir, run_dir=run_dir)
+        except (ValueError, FileNotFoundError) as e:
+            fail(str(e))
+    print_eval(result)
+    console.print(f"wrote {out_dir}/eval.json, trajectories.png, episodes.gif")
+
+
+def print_eval(result) -> None:
+    from rich.table import Table
+
+    m = result["metrics"]
+    t = Table(title=f"{result['agent']}: {m['episodes']} held-out episodes")
+    t.add_column("metric")
+    t.add_column("value", justify="right")
+    lo, hi = m["success_ci95"]
+    t.add_row("success rate (95% CI)", f"{m['success_rate']:.1%} ({lo:.1%} - {hi:.1%})")
+    t.add_row("SPL", f"{m['spl']:.3f}")
+    s = m["steps_to_goal_successes"]
+    t.add_row("steps to goal (successes)", f"{s['mean']:.1f} ± {s['std']:.1f}")
+    s = m["steps_to_goal_failures_as_limit"]
+    t.add_row("steps (failures = limit)", f"{s['mean']:.1f} ± {s['std']:.1f}")
+    t.add_row("steps lower bound (oracle path)", f"{m['steps_lower_bound']['mean']:.1f}")
+    t.add_row("return", f"{m['return']['mean']:.2f} ± {m['return']['std']:.2f}")
+    t.add_row("collisions per episode", f"{m['collisions_per_episode']:.2f}")
+    t.add_row("timeout rate", f"{m['timeout_rate']:.1%}")
+    p = m["path_length_successes"]
+    t.add_row("path length, m (successes)", f"{p['mean']:.2f} ± {p['std']:.2f}")
+    console.print(t)

@@ -1,0 +1,150 @@
+"""`quicknav serve`, `quicknav worker`, `quicknav rollout-server`: the job service and its parts.
+
+These commands need the service extra (``pip install 'quicknav[service]'``; ``uv sync`` installs it).
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Annotated
+
+import typer
+
+from quicknav_cli.common import (
+    console,
+    enable_compilation_cache,
+    expose_cpu_devices,
+    fail,
+    service_settings,
+)
+
+
+def serve(
+    host: Annotated[
+        str | None, typer.Option(help="Bind address (QUICKNAV_HOST, default 127.0.0.1).")
+    ] = None,
+    port: Annotated[
+        int | None, typer.Option(help="HTTP port (QUICKNAV_PORT, default 8000).")
+    ] = None,
+    workers: Annotated[
+        int | None, typer.Option(help="In-process workers (QUICKNAV_MAX_CONCURRENT_JOBS).")
+    ] = None,
+    no_worker: Annotated[
+        bool, typer.Option("--no-worker", help="API only; run `quicknav worker` elsewhere.")
+    ] = False,
+    api_workers: Annotated[
+        int,
+        typer.Option(
+            min=1,
+            max=64,
+            help="API processes (each with its own in-process workers unless --no-worker).",
+        ),
+    ] = 1,
+    grpc_port: Annotated[
+        int | None, typer.Option(help="gRPC Rollout port (QUICKNAV_GRPC_PORT, default 50051).")
+    ] = None,
+    no_grpc: Annotated[
+        bool, typer.Option("--no-grpc", help="Do not start the gRPC Rollout server.")
+    ] = False,
+) -> None:
+    """Start the HTTP API, the gRPC Rollout server and, by default, an in-process worker."""
+    # first: exits with a clear message if the service extra is not installed or a value is bad
+    settings = service_settings(host=host, port=port, max_concurrent_jobs=workers,
+                                embedded_worker=False if no_worker else None,
+                                grpc_port=grpc_port, grpc_enabled=False if no_grpc else None)  # fmt: skip
+    import uvicorn
+
+    from service.api.main import create_app
+
+    if settings.host not in ("127.0.0.1", "localhost", "::1") and not settings.api_token:
+        console.print(f"[yellow]warning:[/] binding {settings.host} without QUICKNAV_API_TOKEN: anyone who can"
+                      " reach this port can submit jobs", soft_wrap=True)  # fmt: skip
+    store = (
+        "redis " + settings.redis_url
+        if settings.redis_url
+        else f"sqlite {settings.data_dir / 'jobs.db'}"
+    )
+    console.print(f"QuickNav API on http://{settings.host}:{settings.port} (docs at /docs), store: {store},"
+                  f" in-process workers: {settings.max_concurrent_jobs if settings.embedded_worker else 0}",
+                  soft_wrap=True)  # fmt: skip
+    rollout = None
+    if settings.grpc_enabled:
+        from service.rollout.server import BackgroundServer
+
+        rollout = BackgroundServer(settings).start()
+        console.print(f"gRPC Rollout on {settings.host}:{rollout.port}", soft_wrap=True)
+    if api_workers > 1:
+        # several processes: each builds its app from the same QUICKNAV_* settings
+        os.environ["QUICKNAV_EMBEDDED_WORKER"] = "false" if not settings.embedded_worker else "true"
+        uvicorn.run("service.api.main:create_app", factory=True, host=settings.host, port=settings.port,
+                    workers=api_workers, log_level="warning")  # fmt: skip
+    else:
+        uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="info")
+
+
+def rollout_server(
+    host: Annotated[
+        str | None, typer.Option(help="Bind address (QUICKNAV_HOST, default 127.0.0.1).")
+    ] = None,
+    port: Annotated[
+        int | None, typer.Option(help="gRPC port (QUICKNAV_GRPC_PORT, default 50051).")
+    ] = None,
+    cpu_devices: Annotated[
+        int,
+        typer.Option(
+            min=1,
+            max=64,
+            help="CPU devices XLA exposes; batches of at least 256 envs per device are split"
+            " across them (on 2 cores one device was faster: gRPC needs the other core)."
+            " Several GPUs are always used.",
+        ),
+    ] = 1,
+) -> None:
+    """Only the gRPC Rollout server: remote agents step batches of envs over one stream each."""
+    if cpu_devices > 1:
+        expose_cpu_devices(cpu_devices)
+    enable_compilation_cache()
+    from service.rollout.server import serve_forever
+
+    settings = service_settings(host=host, grpc_port=port)
+    if settings.host not in ("127.0.0.1", "localhost", "::1") and not settings.api_token:
+        console.print(f"[yellow]warning:[/] binding {settings.host} without QUICKNAV_API_TOKEN",
+                      soft_wrap=True)  # fmt: skip
+    try:
+        serve_forever(settings)
+    except OSError as e:
+        fail(str(e))
+    except KeyboardInterrupt:
+        pass
+
+
+def worker(
+    burst: Annotated[
+        bool,
+        typer.Option(
+            help="Run queued jobs (and jobs orphaned by a dead worker), exit when none is queued or running."
+        ),
+    ] = False,
+) -> None:
+    """A worker process: claims jobs from the store (Redis for several machines), runs them."""
+    import signal
+
+    from service.settings import make_store
+    from service.worker import Worker
+
+    settings = service_settings()
+    w = Worker(make_store(settings), settings)
+
+    def on_term(signum, frame):
+        console.print("stopping at the next chunk boundary (checkpoint kept, job handed back)")
+        w.shutdown.set()
+
+    signal.signal(signal.SIGTERM, on_term)
+    signal.signal(signal.SIGINT, on_term)
+    console.print(f"worker {w.id} on {'redis' if settings.redis_url else settings.data_dir / 'jobs.db'}",
+                  soft_wrap=True)  # fmt: skip
+    if burst:
+        ran = w.run_burst()
+        console.print(f"burst done: {ran} job(s) run, none queued or running")
+    else:
+        w.run_forever()

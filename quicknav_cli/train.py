@@ -1,0 +1,156 @@
+"""`quicknav train` and `quicknav presets`: train an agent into a run folder, list the presets."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+from quicknav_cli.common import (
+    PrintConfigOpt,
+    SetOpt,
+    console,
+    enable_compilation_cache,
+    fail,
+    print_config,
+    read_json,
+    resolved,
+    sets,
+)
+
+# --network NAME: the network section it sets (other fields keep the preset's values)
+NETWORKS: dict[str, dict[str, Any]] = {
+    "mlp": {"network.kind": "mlp", "network.memory_size": 0},
+    "mlp-memory": {"network.kind": "mlp", "network.memory_size": 32},
+    "lstm": {"network.kind": "lstm"},
+    "gtrxl": {"network.kind": "gtrxl"},
+}
+ALGORITHMS = ("ppo", "sac", "td3")
+
+
+def train_request(
+    preset: str | None,
+    config: Path | None,
+    algo: str | None = None,
+    network: str | None = None,
+    total_steps: int | None = None,
+    num_envs: int | None = None,
+    seed: int | None = None,
+    overrides: list[str] | None = None,
+) -> dict[str, Any]:
+    """The training request the flags describe (what the SDK would send to the service)."""
+    if preset is not None and config is not None:
+        fail("give either --preset or --config, not both")
+    changes: dict[str, Any] = {}
+    if algo is not None:
+        if algo not in ALGORITHMS:
+            fail(f"--algo {algo!r}: allowed values are {', '.join(ALGORITHMS)}")
+        changes["algorithm.name"] = algo
+    if network is not None:
+        if network not in NETWORKS:
+            fail(f"--network {network!r}: allowed values are {', '.join(NETWORKS)}")
+        changes.update(NETWORKS[network])
+    for key, value in (("total_steps", total_steps), ("num_envs", num_envs), ("seed", seed)):
+        if value is not None:
+            changes[key] = value
+    changes.update(sets(overrides))
+    if config is not None:
+        return {"config": read_json(config), "overrides": changes}
+    return {"preset": preset or "demo", "overrides": changes}
+
+
+def train(
+    preset: Annotated[
+        str | None, typer.Option(help="Preset name (quicknav presets lists them; default demo).")
+    ] = None,
+    config: Annotated[Path | None, typer.Option("--config", help="TrainConfig JSON file.")] = None,
+    algo: Annotated[
+        str | None, typer.Option(help="ppo, sac or td3 (its default hyperparameters).")
+    ] = None,
+    network: Annotated[str | None, typer.Option(help="mlp, mlp-memory, lstm or gtrxl.")] = None,
+    total_steps: Annotated[int | None, typer.Option(help="Env steps to train.")] = None,
+    num_envs: Annotated[int | None, typer.Option(help="Parallel envs.")] = None,
+    seed: Annotated[int | None, typer.Option(help="Training seed.")] = None,
+    set_: SetOpt = None,
+    out: Annotated[
+        Path | None, typer.Option(help="Run folder (default runs/<preset>-s<seed>).")
+    ] = None,
+    resume: Annotated[Path | None, typer.Option(help="Continue the run in this folder.")] = None,
+    checkpoint_every: Annotated[int, typer.Option(min=1, help="Checkpoint every N chunks.")] = 1,
+    print_only: PrintConfigOpt = False,
+) -> None:
+    """Train an agent; writes config.json, metrics.jsonl, a checkpoint and learning_curve.png."""
+    from rich.progress import (
+        BarColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    from quicknav_core.config import resolve_train
+    from quicknav_core.train.run import read_config, train_run
+
+    if resume is not None:
+        try:
+            cfg = read_config(resume)
+        except FileNotFoundError:
+            fail(f"--resume {resume}: not a run folder (no config.json)")
+        run_dir = resume
+    else:
+        request = train_request(preset, config, algo, network, total_steps, num_envs, seed, set_)
+        cfg = resolved(resolve_train, request)
+        run_dir = (
+            out or Path("runs") / f"{preset or (config.stem if config else 'demo')}-s{cfg.seed}"
+        )
+    if print_only:
+        print_config(cfg)
+        return
+    enable_compilation_cache()
+    console.print(
+        f"training {cfg.trainer_kind} ({cfg.network.kind}) for {cfg.total_steps:,} env steps,"
+        f" {cfg.num_envs} envs, grid {cfg.env.grid_size} -> {run_dir}"
+    )
+    columns = (
+        TextColumn("[progress.description]{task.description}"), BarColumn(),
+        TextColumn("{task.completed:,.0f}/{task.total:,.0f} steps"), TimeElapsedColumn(),
+        TimeRemainingColumn(), TextColumn("{task.fields[info]}"),
+    )  # fmt: skip
+    with Progress(*columns, console=console) as progress:
+        task = progress.add_task("compiling", total=cfg.total_steps, info="")
+
+        def on_chunk(r) -> bool:
+            m = r.metrics
+            info = (
+                f"return {m.get('mean_return', float('nan')):.1f}  success"
+                f" {m.get('success_rate', float('nan')):.0%}  len {m.get('mean_length', float('nan')):.0f}"
+                f"  {r.steps_per_s:,.0f} steps/s"
+            )
+            progress.update(task, completed=r.env_steps, total=r.total_steps, info=info,
+                            description="training")  # fmt: skip
+            return False
+
+        summary = train_run(cfg, run_dir, callback=on_chunk, resume=resume is not None,
+                            checkpoint_every=checkpoint_every)  # fmt: skip
+    final = summary["final"]
+    console.print(
+        f"done: {summary['env_steps']:,} env steps; last chunk: return {final.get('mean_return', 0):.1f},"
+        f" success {final.get('success_rate', 0):.0%}"
+    )
+    if summary["env_steps"] != cfg.total_steps:
+        console.print(
+            f"note: {summary['env_steps']:,} env steps, not {cfg.total_steps:,}: training runs in"
+            " whole updates of num_envs x rollout steps"
+        )
+    console.print(
+        f"run folder: {run_dir} (config.json, metrics.jsonl, checkpoint/, learning_curve.png)"
+    )
+
+
+def presets() -> None:
+    """List the training presets."""
+    from quicknav_core.config import PRESETS
+
+    for name, p in PRESETS.items():
+        console.print(f"[bold]{name}[/]: {p['description']}")

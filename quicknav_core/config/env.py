@@ -1,0 +1,197 @@
+"""The environment's configuration: ``EnvConfig`` (room, robot, lidar, task) and its ``RewardConfig``.
+
+Every field is validated on construction; a bad value raises ``pydantic.ValidationError`` whose
+message names the field and the allowed range. Fields that change array shapes (``grid_size``,
+``lidar_beams``, ``observe_goal``, bank sizes) are fixed when the environment is built; every other
+number ends up in the traced ``EnvParams`` pytree and can be vmapped without recompiling.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING, Literal
+
+from pydantic import Field, model_validator
+
+from quicknav_core.config.base import TRACED, Split, StrictModel
+from quicknav_core.env.constants import GOAL_DIM, POSE_DIM
+
+if TYPE_CHECKING:  # pragma: no cover - import only for type checkers, keeps this module JAX-free
+    from quicknav_core.env.quicknav import QuickNavEnv
+    from quicknav_core.env.types import EnvParams
+
+
+class RewardConfig(StrictModel):
+    """Reward weights of the paper's formula.
+
+    r_t = -step_penalty - 1[collision]*collision_penalty - min(C_t, cycle_cap)*cycle_penalty
+          + progress_term + 1[goal reached]*goal_reward + 1[new cell]*exploration_reward
+    with progress_term = sign(d_{t-1} - d_t) * progress_reward (``progress="sign"``) or
+    progress_reward * (d_{t-1} - d_t) / (max_wheel_speed * dt) (``progress="linear"``).
+    """
+
+    step_penalty: float = Field(
+        0.1, ge=0.0, le=1000.0, description="λs, paid every step", json_schema_extra=TRACED
+    )
+    collision_penalty: float = Field(
+        10.0, ge=0.0, le=1000.0, description="λw, per wall collision", json_schema_extra=TRACED
+    )
+    cycle_penalty: float = Field(
+        0.0, ge=0.0, le=1000.0, description="λc, times min(C_t, cycle_cap)", json_schema_extra=TRACED
+    )
+    progress_reward: float = Field(
+        1.0, ge=0.0, le=1000.0, description="λp, progress towards goal", json_schema_extra=TRACED
+    )
+    goal_reward: float = Field(
+        50.0, ge=0.0, le=10000.0, description="λg, on reaching the goal", json_schema_extra=TRACED
+    )
+    cycle_cap: int = Field(
+        10, ge=0, le=1_000_000, description="cap on the revisit count C_t", json_schema_extra=TRACED
+    )
+    exploration_reward: float = Field(
+        0.0,
+        ge=0.0,
+        le=1000.0,
+        description="λe, paid on entering a cell not yet visited this episode (0 = the paper's formula)",
+        json_schema_extra=TRACED,
+    )
+    progress: Literal["sign", "linear"] = Field(
+        "sign", description="shape of the progress term", json_schema_extra=TRACED
+    )
+
+
+class EnvConfig(StrictModel):
+    """Everything that defines a QuickNav environment. ``build(split)`` returns ``(env, params)``."""
+
+    # Room and procedural generation
+    room_size: float = Field(8.0, gt=0.0, le=1000.0, description="side of the square room, metres")
+    grid_size: int = Field(16, ge=4, le=128, description="cells per side (outer ring is wall)")
+    carve_fraction: float = Field(
+        0.8, gt=0.0, le=1.0, description="fraction of inner cells carved free"
+    )
+    return_prob: float = Field(
+        0.05, ge=0.0, lt=1.0, description="chance per carving step to jump back to the centre"
+    )
+    carve_max_steps: int | None = Field(
+        None, ge=1, le=100_000_000, description="carving step cap; None = 1000 x inner cells"
+    )
+    room_seed: int = Field(0, ge=0, le=2**31 - 1, description="seed of the room banks")
+    train_rooms: int = Field(1024, ge=1, le=1_000_000, description="rooms in the train bank")
+    test_rooms: int = Field(256, ge=1, le=1_000_000, description="rooms in the held-out test bank")
+
+    # Robot
+    robot_radius: float = Field(0.15, gt=0.0, le=100.0, description="robot disc radius, metres")
+    max_wheel_speed: float = Field(
+        1.0, gt=0.0, le=100.0, description="wheel speed at |action|=1, m/s"
+    )
+    wheel_base: float = Field(0.3, gt=0.0, le=100.0, description="distance between wheels, metres")
+    dt: float = Field(0.1, gt=0.0, le=10.0, description="control period, seconds")
+
+    # Lidar
+    lidar_beams: int = Field(16, ge=1, le=1024, description="number of lidar beams")
+    lidar_fov_deg: float = Field(
+        360.0, gt=0.0, le=360.0, description="lidar field of view, degrees"
+    )
+    lidar_max_range: float = Field(10.0, gt=0.0, le=10000.0, description="lidar range cap, metres")
+
+    # Task
+    goal_candidates: int = Field(
+        5, ge=1, le=64, description="random free cells drawn; the farthest becomes the goal"
+    )
+    goal_radius: float = Field(0.3, gt=0.0, le=100.0, description="goal disc radius, metres")
+    max_steps: int = Field(300, ge=1, le=1_000_000, description="episode truncation limit")
+    observe_goal: bool = Field(True, description="include goal position/distance/bearing in obs")
+    final_obs: bool = Field(
+        True,
+        description="put the pre-reset observation in info['final_obs'] (costs a 2nd lidar cast;"
+        " trainers switch it off: none of them reads it)",
+    )
+    reward: RewardConfig = Field(default_factory=RewardConfig)
+
+    @property
+    def cell_size(self) -> float:
+        """Side of one grid cell in metres."""
+        return self.room_size / self.grid_size
+
+    @property
+    def inner_cells(self) -> int:
+        """Number of cells inside the outer wall ring."""
+        return (self.grid_size - 2) ** 2
+
+    @property
+    def carve_target(self) -> int:
+        """Free cells a generated room must reach (at least 2: start and goal differ)."""
+        return max(2, math.ceil(self.carve_fraction * self.inner_cells - 1e-9))
+
+    @property
+    def carve_step_cap(self) -> int:
+        """Carving steps after which generation stops even if the target is not met."""
+        return self.carve_max_steps if self.carve_max_steps is not None else 1000 * self.inner_cells
+
+    @property
+    def obs_dim(self) -> int:
+        """Length of the flat observation vector."""
+        return POSE_DIM + 3 * self.lidar_beams + (GOAL_DIM if self.observe_goal else 0)
+
+    @model_validator(mode="after")
+    def _check_geometry(self) -> EnvConfig:
+        c = self.cell_size
+        if 2 * self.robot_radius >= c:
+            raise ValueError(
+                f"robot_radius={self.robot_radius} m: the robot (diameter {2 * self.robot_radius:g} m)"
+                f" must be narrower than a one-cell corridor; allowed range 0 < robot_radius"
+                f" < {c / 2:g} m (cell size room_size/grid_size = {c:g} m)"
+            )
+        step = self.max_wheel_speed * self.dt
+        if step > c:
+            raise ValueError(
+                f"max_wheel_speed*dt = {step:g} m per step exceeds the cell size {c:g} m, so the"
+                " robot could pass through walls; allowed range max_wheel_speed*dt <= room_size/grid_size"
+            )
+        if self.carve_target > self.inner_cells:
+            raise ValueError(
+                f"carve_fraction={self.carve_fraction}: grid_size={self.grid_size} has only"
+                f" {self.inner_cells} inner cells but at least 2 must be free"
+            )
+        if self.carve_step_cap < self.carve_target:
+            raise ValueError(
+                f"carve_max_steps={self.carve_max_steps} can never carve {self.carve_target} cells;"
+                f" allowed range carve_max_steps >= {self.carve_target}"
+            )
+        self._check_carving()
+        return self
+
+    def _check_carving(self) -> None:
+        """Refuse rooms the carving walk cannot make within its step cap (``env.carving``)."""
+        from quicknav_core.env import carving
+
+        g, p, target, cap = self.grid_size, self.return_prob, self.carve_target, self.carve_step_cap
+        if carving.feasible(g, p, target, cap):
+            return
+        steps = carving.expected_steps(g, p, target)
+        p_max = carving.largest_return_prob(g, target, cap)
+        f_max = next(
+            (f / 100 for f in range(int(self.carve_fraction * 100), 0, -1)
+             if carving.feasible(g, p, max(2, math.ceil(f / 100 * self.inner_cells - 1e-9)), cap)),
+            0.0,
+        )  # fmt: skip
+        g_max = next(
+            (h for h in range(g - 1, 3, -1)
+             if carving.feasible(h, p, max(2, math.ceil(self.carve_fraction * (h - 2) ** 2 - 1e-9)),
+                                 self.carve_max_steps or 1000 * (h - 2) ** 2)),
+            4,
+        )  # fmt: skip
+        raise ValueError(
+            f"grid_size={g} with return_prob={p} and carve_fraction={self.carve_fraction}: the"
+            f" carving walk jumps back to the centre every {1 / p if p else math.inf:.0f} steps on"
+            f" average and rarely gets far, so carving {target} cells takes about"
+            f" {steps:,.0f} steps per room (the slowest rooms up to {carving.SLOWEST_ROOM_FACTOR:g}x"
+            f" that), beyond carve_max_steps ({cap:,}); allowed: return_prob <= {p_max:g}, or"
+            f" carve_fraction <= {f_max:g}, or grid_size <= {g_max}"
+        )
+
+    def build(self, split: Split = "train") -> tuple[QuickNavEnv, EnvParams]:
+        """Return the gymnax environment and its params with the ``split`` room bank."""
+        from quicknav_core.env.quicknav import build_env
+
+        return build_env(self, split)

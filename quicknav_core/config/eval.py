@@ -1,0 +1,50 @@
+"""Evaluation configuration: which policy drives, in which env, over which fixed-seed episodes."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field, model_validator
+
+from quicknav_core.config.base import Split, StrictModel
+from quicknav_core.config.env import EnvConfig
+
+BASELINES = ("random", "oracle")
+# Episodes run side by side in one compiled call; a larger evaluation runs in batches of this many
+# (progress and cancellation between batches).
+EVAL_BATCH = 256
+
+
+class EvalConfig(StrictModel):
+    """A held-out evaluation.
+
+    ``policy="trained"`` evaluates the checkpoint of ``source`` (a run folder, or a train job's id in
+    the service) in that run's own env; ``"random"`` and ``"oracle"`` are baselines in ``env``. A
+    resolved config (``config.resolve.resolve_eval``) always carries the env the episodes run in, so
+    a stored eval job says everything about what was measured.
+    """
+
+    policy: Literal["trained", "random", "oracle"] = Field(
+        "trained", description="'trained' (the checkpoint of source) or a baseline"
+    )
+    source: str | None = Field(
+        None, description="the trained policy: a run folder, or a train job id in the service"
+    )
+    env: EnvConfig | None = Field(None, description="the env of the episodes (resolved: always set)")
+    episodes: int = Field(100, ge=1, le=100_000)
+    seed: int = Field(0, ge=0, le=2**31 - 1, description="episode seed: same seed, same episodes")
+    split: Split = Field("test", description="room bank: test (held out) or train")
+    deterministic: bool = Field(True, description="act with the policy's mean, not a sample")
+    gif_episodes: int = Field(
+        3, ge=0, le=1024, description="episodes whose per-step poses, lidar and actions are kept"
+    )
+    pictures: bool = True
+
+    @model_validator(mode="after")
+    def _check_source(self) -> EvalConfig:
+        if self.policy != "trained" and self.source is not None:
+            raise ValueError(
+                f"source={self.source!r} names a trained policy, but policy={self.policy!r} is a"
+                " baseline; allowed: source only with policy='trained'"
+            )
+        return self

@@ -1,0 +1,316 @@
+"""THE path from a request to a config: every door (CLI, REST, SDK) sends a request, ``resolve`` makes it
+a validated config, and that config is what runs and what a job stores.
+
+    resolve_train(TrainRequest(preset="demo", overrides={"env.grid_size": 8}))  -> TrainConfig
+    resolve_sweep(SweepRequest(space="ppo", trials=8))                        -> SweepConfig
+    resolve_eval(EvalRequest(policy="oracle", env={"grid_size": 8}))          -> EvalConfig
+
+A request that cannot become a config raises ``ConfigError`` whose items name the request field
+(``["overrides", "env.grid_size"]``, ``["config", "num_envs"]``, ``["preset"]``) and what is allowed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from typing import Any, Literal
+
+from pydantic import AliasChoices, BaseModel, Field, ValidationError, model_validator
+
+from quicknav_core.config.base import Split, StrictModel
+from quicknav_core.config.env import EnvConfig
+from quicknav_core.config.errors import ConfigError, error_items
+from quicknav_core.config.eval import EvalConfig
+from quicknav_core.config.overrides import OverrideError, override_data
+from quicknav_core.config.presets import PRESETS, get_preset
+from quicknav_core.config.sweep import (
+    BUILTIN_SPACES,
+    BUILTIN_TOTAL_STEPS,
+    SPACE_BASE_PRESET,
+    SweepConfig,
+)
+from quicknav_core.config.train import TrainConfig
+
+SpaceName = Literal["ppo", "sac", "td3", "mlp", "lstm", "gtrxl"]
+# the tag values that pydantic puts into error locations of tagged unions
+_TAG_VALUES = {"ppo", "sac", "td3", "mlp", "lstm", "gtrxl"}
+
+
+# --------------------------------------------------------------------------- requests
+class TrainRequest(StrictModel):
+    """A training request: a preset or a full config, plus dotted-key overrides applied on top."""
+
+    preset: str | None = Field(None, description="a training preset name", examples=["demo"])
+    config: TrainConfig | None = Field(None, description="a full TrainConfig")
+    overrides: dict[str, Any] = Field(
+        default_factory=dict,
+        description="dotted keys of TrainConfig with JSON values",
+        examples=[{"total_steps": 200000, "env.grid_size": 8}],
+    )
+
+    @model_validator(mode="after")
+    def _one(self) -> TrainRequest:
+        if (self.config is None) == (self.preset is None):
+            raise ValueError("give exactly one of 'config' (a TrainConfig) or 'preset' (a preset name)")
+        return self
+
+
+class SweepRequest(StrictModel):
+    """A sweep request: a built-in search space or a full SweepConfig, plus overrides.
+
+    ``overrides`` keys are SweepConfig fields (``trials``, ``objective``, ...) or fields of the base
+    TrainConfig (``env.grid_size``, ``base.total_steps`` and ``total_steps`` alike); ``trials``,
+    ``parallel`` and ``total_steps`` are shorthands for the same.
+    """
+
+    space: SpaceName | None = Field(None, description="a built-in search space (the paper's)")
+    config: SweepConfig | None = Field(None, description="a full SweepConfig")
+    trials: int | None = Field(None, ge=1, le=100_000, description="finished trials wanted")
+    parallel: int | None = Field(None, ge=1, le=1024, description="trials asked at once")
+    total_steps: int | None = Field(None, ge=1, description="env steps per trial")
+    overrides: dict[str, Any] = Field(default_factory=dict, examples=[{"env.grid_size": 8}])
+
+    @model_validator(mode="after")
+    def _one(self) -> SweepRequest:
+        if (self.config is None) == (self.space is None):
+            raise ValueError("give exactly one of 'config' (a SweepConfig) or 'space' (a built-in space)")
+        return self
+
+
+class EvalRequest(StrictModel):
+    """An evaluation request: a trained policy or a baseline.
+
+    ``source`` names the trained policy and each door looks it up its own way: the service takes a
+    train job's id (also accepted as ``job_id``), the CLI a run folder (also accepted as ``run``).
+    """
+
+    source: str | None = Field(
+        None,
+        validation_alias=AliasChoices("source", "job_id", "run"),
+        description="the trained policy: a train job's id (service; alias job_id) or a run folder"
+        " (CLI; alias run)",
+    )
+    policy: Literal["random", "oracle"] | None = Field(None, description="a baseline policy")
+    env: dict[str, Any] = Field(
+        default_factory=dict,
+        description="EnvConfig fields (dotted keys or sections) set on the policy's env: the "
+        "run's own for a trained policy, the defaults for a baseline",
+    )
+    episodes: int = Field(100, ge=1, le=100_000)
+    seed: int = Field(0, ge=0, le=2**31 - 1, description="episode seed: same seed, same episodes")
+    split: Split = Field("test", description="room bank: test (held out) or train")
+    deterministic: bool = Field(True, description="act with the policy's mean, not a sample")
+    stochastic: bool | None = Field(
+        None, description="deprecated: the opposite of 'deterministic' (kept for one release)"
+    )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _one_source(cls, data: Any) -> Any:
+        if isinstance(data, dict):
+            named = [k for k in ("source", "job_id", "run") if data.get(k) is not None]
+            if len(named) > 1:
+                raise ValueError(f"give the trained policy once: {' and '.join(named)} are the same field")
+        return data
+
+    @model_validator(mode="after")
+    def _one(self) -> EvalRequest:
+        if (self.source is None) == (self.policy is None):
+            raise ValueError(
+                "give exactly one of 'job_id' (a train job; 'source' or 'run' for a run folder)"
+                " or 'policy' (random or oracle)"
+            )
+        if (
+            self.stochastic is not None
+            and "deterministic" in self.model_fields_set
+            and self.stochastic == self.deterministic
+        ):
+            raise ValueError(
+                f"stochastic={self.stochastic} contradicts deterministic={self.deterministic};"
+                " send only 'deterministic' (stochastic is its deprecated opposite)"
+            )
+        return self
+
+    @property
+    def acts_deterministically(self) -> bool:
+        if "deterministic" not in self.model_fields_set and self.stochastic is not None:
+            return not self.stochastic
+        return self.deterministic
+
+
+# --------------------------------------------------------------------------- resolving
+def _request(cls: type[BaseModel], request: BaseModel | Mapping[str, Any]) -> Any:
+    if isinstance(request, cls):
+        return request
+    if isinstance(request, BaseModel):
+        request = request.model_dump(exclude_unset=True)
+    try:
+        return cls.model_validate(request)
+    except ValidationError as e:
+        raise ConfigError(error_items(e), title=cls.__name__) from None
+
+
+class _Where:
+    """Maps a location inside the resolved config back to the request field that set it."""
+
+    def __init__(self, fallback: list[str], config_root: list[str] | None = None):
+        self.fallback = fallback
+        self.config_root = config_root
+        self.sources: list[tuple[list[str], list[str]]] = []  # (config path, request loc)
+
+    def add(self, config_path: str, request_loc: list[str]) -> None:
+        self.sources.append((config_path.split("."), request_loc))
+
+    def locate(self, loc: list[str], msg: str = "") -> list[str]:
+        path = [p for p in loc if p not in _TAG_VALUES]
+        best: tuple[int, list[str]] | None = None
+        for cfg_path, req_loc in self.sources:
+            n = len(cfg_path)
+            if path[:n] == cfg_path and (best is None or n > best[0]):
+                best = (n, req_loc)
+        if best is not None:
+            return best[1]
+        # an error of a whole section (a check across fields): the request field inside it that
+        # the message names, e.g. "total_steps=1 is less than one update" -> the total_steps sent
+        inside = [(p, r) for p, r in self.sources if p[: len(path)] == path]
+        named = [r for p, r in inside if f"{p[-1]}=" in msg or f".{p[-1]}" in msg]
+        if len(named) == 1 or (len(inside) == 1 and not named):
+            return named[0] if named else inside[0][1]
+        if self.config_root is not None:
+            return [*self.config_root, *loc]
+        return self.fallback
+
+    def errors(self, e: ValidationError, strip: int = 0) -> ConfigError:
+        items = []
+        for item in error_items(e):
+            loc = item["loc"][strip:]
+            items.append({**item, "loc": self.locate(loc, item["msg"]), "field": ".".join(loc)})
+        return ConfigError(items, title=e.title)
+
+    def override_error(self, e: OverrideError, request_loc: list[str]) -> ConfigError:
+        return ConfigError.single(request_loc, e.message, "unknown_field")
+
+
+def resolve_train(request: TrainRequest | Mapping[str, Any]) -> TrainConfig:
+    """The TrainConfig a training request asks for (preset or config, then the overrides)."""
+    req: TrainRequest = _request(TrainRequest, request)
+    if req.preset is not None:
+        try:
+            base = get_preset(req.preset)
+        except ValueError:
+            raise ConfigError.single(
+                ["preset"], f"unknown preset {req.preset!r}; known: {', '.join(PRESETS)}"
+            ) from None
+        where = _Where(fallback=["preset"])
+    else:
+        base = req.config
+        where = _Where(fallback=["config"], config_root=["config"])
+    data = base.model_dump(mode="json")
+    for key, value in req.overrides.items():
+        try:
+            override_data(TrainConfig, {key: value}, data=data)
+        except OverrideError as e:
+            raise where.override_error(e, ["overrides", key]) from None
+        where.add(key, ["overrides", key])
+    try:
+        return TrainConfig.model_validate(data)
+    except ValidationError as e:
+        raise where.errors(e) from None
+
+
+def _sweep_key(key: str) -> str:
+    """A sweep override key as a SweepConfig path: base fields may be given without ``base.``."""
+    head = key.split(".", 1)[0]
+    return key if head in SweepConfig.model_fields else f"base.{key}"
+
+
+def resolve_sweep(request: SweepRequest | Mapping[str, Any]) -> SweepConfig:
+    """The SweepConfig a sweep request asks for (space or config, then the overrides)."""
+    req: SweepRequest = _request(SweepRequest, request)
+    if req.space is not None:
+        base = get_preset(SPACE_BASE_PRESET[req.space]).model_dump(mode="json")
+        base["total_steps"] = BUILTIN_TOTAL_STEPS
+        data = {"base": base, "space": BUILTIN_SPACES[req.space], "study_name": req.space}
+        where = _Where(fallback=["space"])
+    else:
+        data = req.config.model_dump(mode="json")
+        where = _Where(fallback=["config"], config_root=["config"])
+    shorthands = (
+        ("trials", "trials", req.trials),
+        ("parallel", "parallel", req.parallel),
+        ("total_steps", "base.total_steps", req.total_steps),
+    )
+    changes = [(path, value, [name]) for name, path, value in shorthands if value is not None]
+    changes += [(_sweep_key(k), v, ["overrides", k]) for k, v in req.overrides.items()]
+    for path, value, loc in changes:
+        try:
+            override_data(SweepConfig, {path: value}, data=data)
+        except OverrideError as e:
+            raise where.override_error(e, loc) from None
+        where.add(path, loc)
+    try:
+        return SweepConfig.model_validate(data)
+    except ValidationError as e:
+        raise where.errors(e) from None
+
+
+TrainedEnv = Callable[[str], EnvConfig]
+
+
+def resolve_env(fields: Mapping[str, Any], base: EnvConfig | None = None) -> EnvConfig:
+    """An EnvConfig from fields (sections or dotted keys) set on ``base`` (default: the defaults).
+
+    The env of a baseline evaluation, of ``quicknav env demo`` and of a gRPC Rollout ``Start``;
+    errors name the field as sent (``loc`` = its key).
+    """
+    base = base or EnvConfig()
+    where = _Where(fallback=[])
+    data = base.model_dump(mode="json")
+    for key, value in fields.items():
+        try:
+            override_data(EnvConfig, {key: value}, data=data)
+        except OverrideError as e:
+            raise ConfigError.single([key], e.message, "unknown_field") from None
+        where.add(key, [key])
+    try:
+        return EnvConfig.model_validate(data)
+    except ValidationError as e:
+        raise where.errors(e) from None
+
+
+def resolve_eval(
+    request: EvalRequest | Mapping[str, Any], trained_env: TrainedEnv | None = None
+) -> EvalConfig:
+    """The EvalConfig an eval request asks for, its env resolved.
+
+    ``trained_env(source)`` gives the env a trained policy was trained in (the CLI reads the run
+    folder, the service the train job's stored config); it raises ``ConfigError`` for an unknown
+    source. ``env`` overrides apply on top; they may not change the observation's length.
+    """
+    req: EvalRequest = _request(EvalRequest, request)
+    source = req.source
+    if source is not None:
+        if trained_env is None:
+            raise ConfigError.single(["source"], "this door cannot look up trained policies")
+        base_env = trained_env(source)
+    else:
+        base_env = EnvConfig()
+    try:
+        env = resolve_env(req.env, base_env)
+    except ConfigError as e:
+        raise ConfigError([{**i, "loc": ["env", *i["loc"]]} for i in e.items], e.title) from None
+    if source is not None and env.obs_dim != base_env.obs_dim:
+        raise ConfigError.single(
+            ["env"],
+            f"the policy was trained on {base_env.obs_dim}-long observations (lidar_beams="
+            f"{base_env.lidar_beams}, observe_goal={base_env.observe_goal}); these env overrides"
+            f" make them {env.obs_dim} long: keep lidar_beams and observe_goal",
+        )
+    return EvalConfig(
+        policy="trained" if source is not None else req.policy,
+        source=source,
+        env=env,
+        episodes=req.episodes,
+        seed=req.seed,
+        split=req.split,
+        deterministic=req.acts_deterministically,
+    )

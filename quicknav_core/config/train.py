@@ -1,0 +1,205 @@
+"""Training configuration: networks, algorithms and ``TrainConfig`` (a whole run).
+
+Fields marked ``TRACED`` (learning rate, gamma, clip, ...) are numbers inside the compiled program;
+trials that differ only in them train side by side (``quicknav_core.train.batched``).
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import Field, model_validator
+
+from quicknav_core.config.base import TRACED, StrictModel
+from quicknav_core.config.env import EnvConfig
+
+
+class MLPNetwork(StrictModel):
+    """ReLU MLP; ``memory_size > 0`` adds the paper's memory head (a recurrent carry)."""
+
+    kind: Literal["mlp"] = "mlp"
+    hidden_sizes: tuple[int, ...] = Field((128, 128), min_length=1, max_length=8)
+    memory_size: int = Field(0, ge=0, le=1024, description="memory head size; 0 = memoryless")
+    dropout: float = Field(0.0, ge=0.0, lt=1.0, description="dropout after each hidden layer")
+    learned_log_std: bool = Field(False, description="state-dependent log std (else a parameter)")
+    init_log_std: float = Field(-0.5, ge=-5.0, le=2.0)
+
+    @model_validator(mode="after")
+    def _sizes(self) -> MLPNetwork:
+        for i, size in enumerate(self.hidden_sizes):
+            if not 1 <= size <= 4096:
+                raise ValueError(f"hidden_sizes[{i}]={size}: allowed range 1..4096")
+        return self
+
+
+class LSTMNetwork(StrictModel):
+    """Stacked LSTM."""
+
+    kind: Literal["lstm"] = "lstm"
+    num_layers: int = Field(2, ge=1, le=16)
+    hidden_size: int = Field(15, ge=1, le=1024)
+    learned_log_std: bool = False
+    init_log_std: float = Field(-0.5, ge=-5.0, le=2.0)
+
+
+class GTrXLNetwork(StrictModel):
+    """Gated Transformer-XL."""
+
+    kind: Literal["gtrxl"] = "gtrxl"
+    embed_size: int = Field(8, ge=1, le=1024)
+    num_heads: int = Field(2, ge=1, le=32)
+    head_size: int = Field(4, ge=1, le=256)
+    num_layers: int = Field(2, ge=1, le=16)
+    memory_length: int = Field(32, ge=1, le=1024)
+    gate_bias: float = Field(2.0, ge=-10.0, le=10.0)
+    learned_log_std: bool = False
+    init_log_std: float = Field(-0.5, ge=-5.0, le=2.0)
+
+
+NetworkConfig = Annotated[MLPNetwork | LSTMNetwork | GTrXLNetwork, Field(discriminator="kind")]
+
+
+def network_is_recurrent(network: MLPNetwork | LSTMNetwork | GTrXLNetwork) -> bool:
+    """Whether a network carries memory between steps (everything but the plain MLP)."""
+    return not (isinstance(network, MLPNetwork) and network.memory_size == 0)
+
+
+# --------------------------------------------------------------------------- algorithms
+class PPOConfig(StrictModel):
+    """PPO. Memoryless MLPs train with rejax's PPO; recurrent networks with QuickNav's recurrent PPO."""
+
+    name: Literal["ppo"] = "ppo"
+    learning_rate: float = Field(3e-4, gt=0.0, le=1.0, json_schema_extra=TRACED)
+    num_steps: int = Field(128, ge=1, le=100_000, description="rollout length per env per update")
+    num_minibatches: int = Field(4, ge=1, le=65_536)
+    num_epochs: int = Field(4, ge=1, le=1000)
+    gamma: float = Field(0.99, gt=0.0, le=1.0, json_schema_extra=TRACED)
+    gae_lambda: float = Field(0.95, ge=0.0, le=1.0, json_schema_extra=TRACED)
+    clip_eps: float = Field(0.2, gt=0.0, le=10.0, json_schema_extra=TRACED)
+    ent_coef: float = Field(0.01, ge=0.0, le=10.0, json_schema_extra=TRACED)
+    vf_coef: float = Field(0.5, ge=0.0, le=100.0, json_schema_extra=TRACED)
+    max_grad_norm: float = Field(0.5, gt=0.0, le=1e6, json_schema_extra=TRACED)
+    anneal_lr: bool = Field(True, description="decay the learning rate linearly to 0")
+    implementation: Literal["auto", "rejax", "quicknav"] = Field(
+        "auto", description="auto: rejax for memoryless MLPs, QuickNav's recurrent PPO otherwise"
+    )
+
+
+class SACConfig(StrictModel):
+    """Soft actor-critic (rejax), memoryless MLPs only."""
+
+    name: Literal["sac"] = "sac"
+    learning_rate: float = Field(3e-4, gt=0.0, le=1.0, json_schema_extra=TRACED)
+    gamma: float = Field(0.99, gt=0.0, le=1.0, json_schema_extra=TRACED)
+    batch_size: int = Field(256, ge=1, le=1_000_000)
+    buffer_size: int = Field(131_072, ge=1, le=100_000_000)
+    fill_buffer: int = Field(2048, ge=0, le=100_000_000, description="random steps before learning")
+    polyak: float = Field(0.99, ge=0.0, le=1.0, json_schema_extra=TRACED)
+    target_entropy_ratio: float = Field(0.98, ge=0.0, le=1.0, json_schema_extra=TRACED)
+    target_update_freq: int = Field(1, ge=1, le=1000)
+    num_epochs: int = Field(1, ge=1, le=1000, description="gradient steps per env step batch")
+    max_grad_norm: float = Field(10.0, gt=0.0, le=1e6, json_schema_extra=TRACED)
+
+
+class TD3Config(StrictModel):
+    """TD3 (rejax), memoryless MLPs only."""
+
+    name: Literal["td3"] = "td3"
+    learning_rate: float = Field(3e-4, gt=0.0, le=1.0, json_schema_extra=TRACED)
+    gamma: float = Field(0.99, gt=0.0, le=1.0, json_schema_extra=TRACED)
+    batch_size: int = Field(256, ge=1, le=1_000_000)
+    buffer_size: int = Field(131_072, ge=1, le=100_000_000)
+    fill_buffer: int = Field(2048, ge=0, le=100_000_000)
+    polyak: float = Field(0.99, ge=0.0, le=1.0, json_schema_extra=TRACED)
+    exploration_noise: float = Field(0.3, ge=0.0, le=10.0, json_schema_extra=TRACED)
+    target_noise: float = Field(0.2, ge=0.0, le=10.0, json_schema_extra=TRACED)
+    target_noise_clip: float = Field(0.5, ge=0.0, le=10.0, json_schema_extra=TRACED)
+    policy_delay: int = Field(2, ge=1, le=1000)
+    num_epochs: int = Field(1, ge=1, le=1000)
+    max_grad_norm: float = Field(10.0, gt=0.0, le=1e6, json_schema_extra=TRACED)
+
+
+AlgorithmConfig = Annotated[PPOConfig | SACConfig | TD3Config, Field(discriminator="name")]
+
+
+class TrainConfig(StrictModel):
+    """A whole training run: environment, algorithm, network, budget and seed."""
+
+    env: EnvConfig = Field(default_factory=EnvConfig)
+    algorithm: AlgorithmConfig = Field(default_factory=PPOConfig)
+    network: NetworkConfig = Field(default_factory=MLPNetwork)
+    total_steps: int = Field(1_000_000, ge=1, le=10_000_000_000, description="env steps to train")
+    num_envs: int = Field(64, ge=1, le=1_048_576)
+    seed: int = Field(0, ge=0, le=2**31 - 1)
+    chunk_steps: int = Field(
+        50_000, ge=1, le=1_000_000_000, description="env steps per jit-compiled chunk (progress)"
+    )
+
+    @property
+    def recurrent_network(self) -> bool:
+        """Whether the network carries memory between steps."""
+        return network_is_recurrent(self.network)
+
+    @property
+    def trainer_kind(self) -> str:
+        """'rejax-ppo', 'rejax-sac', 'rejax-td3' or 'recurrent-ppo'."""
+        algo = self.algorithm
+        if isinstance(algo, PPOConfig):
+            if algo.implementation == "quicknav" or (
+                algo.implementation == "auto" and self.recurrent_network
+            ):
+                return "recurrent-ppo"
+            return "rejax-ppo"
+        return f"rejax-{algo.name}"
+
+    @property
+    def steps_per_update(self) -> int:
+        """Env steps collected per update (PPO) or per chunk unit (off-policy: num_envs)."""
+        if isinstance(self.algorithm, PPOConfig):
+            return self.num_envs * self.algorithm.num_steps
+        return self.num_envs
+
+    @property
+    def updates_per_chunk(self) -> int:
+        return max(1, self.chunk_steps // self.steps_per_update)
+
+    @model_validator(mode="after")
+    def _check_combination(self) -> TrainConfig:
+        algo = self.algorithm
+        if isinstance(algo, PPOConfig):
+            batch = self.num_envs * algo.num_steps
+            if self.trainer_kind == "recurrent-ppo":
+                if self.num_envs % algo.num_minibatches:
+                    raise ValueError(
+                        f"algorithm.num_minibatches={algo.num_minibatches} must divide"
+                        f" num_envs={self.num_envs}: recurrent PPO splits minibatches across envs"
+                        " (whole sequences); allowed: a divisor of num_envs"
+                    )
+            elif batch % algo.num_minibatches:
+                raise ValueError(
+                    f"algorithm.num_minibatches={algo.num_minibatches} must divide the batch"
+                    f" num_envs*num_steps = {batch}; allowed: a divisor of {batch}"
+                )
+            if algo.implementation == "rejax" and self.recurrent_network:
+                raise ValueError(
+                    "algorithm.implementation='rejax' needs a memoryless MLP network"
+                    f" (network.kind={self.network.kind!r}); use 'auto' or 'quicknav'"
+                )
+        else:
+            if self.recurrent_network:
+                raise ValueError(
+                    f"algorithm.name={algo.name!r} trains memoryless MLPs only"
+                    f" (network.kind={self.network.kind!r}, memory_size>0 or recurrent);"
+                    " use algorithm.name='ppo' for recurrent networks"
+                )
+            if algo.batch_size > algo.buffer_size:
+                raise ValueError(
+                    f"algorithm.batch_size={algo.batch_size} exceeds algorithm.buffer_size="
+                    f"{algo.buffer_size}; allowed: batch_size <= buffer_size"
+                )
+        if self.total_steps < self.steps_per_update:
+            raise ValueError(
+                f"total_steps={self.total_steps} is less than one update"
+                f" ({self.steps_per_update} env steps); allowed: total_steps >= {self.steps_per_update}"
+            )
+        return self

@@ -1,0 +1,140 @@
+"""A job's memory, estimated from its config before it runs (no JAX: the service checks it at
+submission against its budget).
+
+The parts that grow with the config: the replay buffer of SAC/TD3 (``buffer_size`` transitions of
+two observations, an action, a reward and a done flag), the room banks, the env batch, PPO's
+rollout, the networks, and, for an evaluation, every episode's trajectory and its planner's fields.
+Factors were measured on this project's CPU VM (peak RSS of a worker process): about 850 MB for
+the interpreter, JAX and compiled programs, and 3 bytes of peak for each byte of replay buffer
+(the buffer lives once in the train state, once more while a compiled unit writes its output, and
+once more while a checkpoint is serialised).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+
+from quicknav_core.config import EnvConfig, EvalConfig, PPOConfig, SweepConfig, TrainConfig
+from quicknav_core.config.eval import EVAL_BATCH
+
+MB = 2**20
+RUNTIME_BYTES = 900 * MB  # python, jax, xla, compiled programs (measured: 840-900 MB)
+REPLAY_FACTOR = 3.5  # peak bytes per replay-buffer byte (measured 2.95, with margin)
+TRANSIENT_FACTOR = 2.0  # inputs and outputs of a compiled call alive together
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """Estimated peak bytes, by part; ``field`` is the config field of the largest part."""
+
+    parts: dict[str, int]
+    fields: dict[str, str]
+
+    @property
+    def total(self) -> int:
+        return sum(self.parts.values())
+
+    @property
+    def largest(self) -> str:
+        return max(self.parts, key=self.parts.get)
+
+    @property
+    def field(self) -> str:
+        return self.fields.get(self.largest, "")
+
+    def describe(self) -> str:
+        shown = sorted(self.parts.items(), key=lambda kv: -kv[1])
+        return ", ".join(f"{name} {size / MB:,.0f} MB" for name, size in shown if size >= MB)
+
+
+def _words(g: int) -> int:
+    return -(-g // 32)
+
+
+def bank_bytes(env: EnvConfig, split: str = "train") -> int:
+    """The room banks of a split (a test bank is carved beside the train bank it must avoid)."""
+    g = env.grid_size
+    per_room = g * g + 2 * g * _words(g) * 4 + g * g * 4 + 4
+    rooms = env.train_rooms + (env.test_rooms + env.train_rooms if split == "test" else 0)
+    return per_room * rooms
+
+
+def env_state_bytes(env: EnvConfig) -> int:
+    """One env's state (bit-packed walls and visits, pose, lidar, counters)."""
+    g = env.grid_size
+    return 3 * g * _words(g) * 4 + env.lidar_beams * 8 + 64
+
+
+def network_params(cfg: TrainConfig) -> int:
+    """Parameters of the policy and value networks (an upper estimate)."""
+    obs, net = cfg.env.obs_dim, cfg.network
+    if net.kind == "mlp":
+        sizes = [obs + net.memory_size, *net.hidden_sizes]
+        body = sum(a * b + b for a, b in itertools.pairwise(sizes))
+        return 2 * body + (net.memory_size + 8) * sizes[-1]  # actor and critic (or shared + heads)
+    if net.kind == "lstm":
+        h = net.hidden_size
+        return 4 * h * (obs + h + 1) + (net.num_layers - 1) * 4 * h * (2 * h + 1) + 8 * h
+    e = net.embed_size
+    per_layer = 4 * e * net.num_heads * net.head_size + 8 * e * e + 12 * e * e
+    return obs * e + net.num_layers * per_layer + (net.memory_length + 1) * e * net.num_layers
+
+
+def train_memory(cfg: TrainConfig, trials: int = 1) -> Estimate:
+    """Peak memory of training ``cfg`` (``trials`` side by side, as a sweep's group does)."""
+    env, algo = cfg.env, cfg.algorithm
+    obs = env.obs_dim
+    parts = {
+        "runtime": RUNTIME_BYTES,
+        "room banks": 2 * bank_bytes(env, "train"),  # the bank, and a copy while it is built
+        "env batch": int(TRANSIENT_FACTOR * trials * cfg.num_envs * (env_state_bytes(env) + obs * 8)),
+        "networks": int(trials * network_params(cfg) * 4 * 6),  # params, grads, adam moments, targets
+    }
+    fields = {"room banks": "env.train_rooms", "env batch": "num_envs", "networks": "network"}
+    if isinstance(algo, PPOConfig):
+        per_step = obs * 4 + 2 * 4 + 6 * 4  # observation, action, logp/value/reward/done/adv/target
+        rollout = trials * cfg.num_envs * algo.num_steps * per_step
+        if cfg.recurrent_network:
+            rollout *= 2  # replayed sequences keep activations for the gradient
+        parts["rollout"] = int(TRANSIENT_FACTOR * rollout)
+        fields["rollout"] = "algorithm.num_steps"
+    else:
+        transition = 2 * obs * 4 + 2 * 4 + 4 + 1
+        parts["replay buffer"] = int(REPLAY_FACTOR * trials * algo.buffer_size * transition)
+        fields["replay buffer"] = "algorithm.buffer_size"
+    return Estimate(parts, fields)
+
+
+def sweep_memory(cfg: SweepConfig) -> Estimate:
+    """Peak memory of a sweep: ``parallel`` trials of the base config trained side by side."""
+    est = train_memory(cfg.base, trials=cfg.parallel)
+    fields = {k: ("parallel" if k not in ("runtime", "room banks") else v)
+              for k, v in est.fields.items()}  # fmt: skip
+    return Estimate(est.parts, fields)
+
+
+def eval_memory(cfg: EvalConfig) -> Estimate:
+    """Peak memory of an evaluation: a batch of episodes with their planners, every trajectory."""
+    env = cfg.env or EnvConfig()
+    steps = env.max_steps + 1
+    batch = min(cfg.episodes, EVAL_BATCH)
+    nodes = (env.grid_size * 5) ** 2  # the planner's refined grid (``planning``, k = 5)
+    planner = nodes * (4 * 2 + 1) * 3  # distance fields and usable masks, plain and with margin
+    kept_steps = steps * (2 * 4)  # every episode's positions
+    gif = min(cfg.gif_episodes, cfg.episodes) * steps * (env.lidar_beams * 8 + 16)
+    per_episode = planner + env_state_bytes(env) * 2 + kept_steps
+    parts = {
+        "runtime": RUNTIME_BYTES,
+        "room banks": 2 * bank_bytes(env, cfg.split),
+        "episode batch": int(TRANSIENT_FACTOR * batch * per_episode),
+        "trajectories": cfg.episodes * kept_steps * 2 + gif,
+    }
+    fields = {"room banks": "env.train_rooms", "episode batch": "env.grid_size",
+              "trajectories": "episodes"}  # fmt: skip
+    return Estimate(parts, fields)
+
+
+def megabytes(n: int) -> int:
+    return math.ceil(n / MB)

@@ -1,0 +1,67 @@
+"""The HTTP API's factory: settings, store, middleware, routers, in-process workers."""
+
+from __future__ import annotations
+
+from contextlib import asynccontextmanager
+
+import anyio
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+
+from service.api.middleware import BodyLimit
+from service.api.routes import artifacts, events, jobs, ops
+from service.jobs.models import JobStore, StoreUnavailable
+from service.settings import Settings, get_settings, make_store
+
+
+def create_app(
+    settings: Settings | None = None, store: JobStore | None = None, start_workers: bool | None = None
+) -> FastAPI:
+    """The API; with ``start_workers`` (default: settings.embedded_worker) in-process workers run too."""
+    settings = settings or get_settings()
+    store = store if store is not None else make_store(settings)
+    settings.artifacts_dir.mkdir(parents=True, exist_ok=True)
+    run_workers = settings.embedded_worker if start_workers is None else start_workers
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        app.state.workers = []
+        if run_workers:
+            # jobs run in supervised child processes: one that dies (out of memory) fails its
+            # job and is replaced, and the API lives on
+            from service.supervisor import WorkerSupervisor
+
+            app.state.workers = WorkerSupervisor(settings, store, settings.max_concurrent_jobs).start()
+        yield
+        if app.state.workers:
+            await anyio.to_thread.run_sync(app.state.workers.stop)
+
+    app = FastAPI(title="QuickNav", version="0.1.0", lifespan=lifespan,
+                  description="Submit train, sweep and eval jobs; follow their progress; fetch results.")  # fmt: skip
+    app.state.settings = settings
+    app.state.store = store
+    app.state.workers = []
+
+    app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
+
+    @app.exception_handler(StoreUnavailable)
+    async def store_unavailable(request: Request, exc: StoreUnavailable):
+        # 507 when the disk is full (the request may succeed once space is freed: DELETE frees
+        # it), 503 when the store cannot be reached; both say when to retry
+        status = 507 if exc.disk_full else 503
+        return JSONResponse(
+            {"detail": f"the job store is unavailable: {exc.reason}; retry in a few seconds"},
+            status_code=status, headers={"Retry-After": str(exc.retry_after_s)},
+        )  # fmt: skip
+
+    @app.exception_handler(RequestValidationError)
+    async def validation_handler(request: Request, exc: RequestValidationError):
+        detail = [{"loc": list(e["loc"]), "msg": e["msg"], "type": e["type"]} for e in exc.errors()]
+        return JSONResponse({"detail": detail}, status_code=422)
+
+    app.include_router(jobs.router)
+    app.include_router(events.router)
+    app.include_router(artifacts.router)
+    app.include_router(ops.router)
+    return app

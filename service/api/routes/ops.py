@@ -1,0 +1,82 @@
+"""Operations: liveness, readiness, the presets, Prometheus metrics."""
+
+from __future__ import annotations
+
+import errno
+import os
+from pathlib import Path
+
+from fastapi import APIRouter, Depends, Request
+from fastapi.responses import JSONResponse, PlainTextResponse, Response
+
+from quicknav_core.config.presets import preset_summaries
+from service.api.deps import SettingsDep, StoreDep, require_token
+from service.jobs.models import JobStatus, StoreUnavailable
+
+router = APIRouter(tags=["service"])
+
+
+@router.get("/healthz")
+async def healthz() -> dict:
+    """The API process is up."""
+    return {"status": "ok"}
+
+
+PROBE_BYTES = 64 * 1024
+
+
+def disk_check(data_dir: Path) -> str:
+    """'ok' if a small file can be written and synced in the data folder, else why not."""
+    probe = data_dir / f".ready-probe-{os.getpid()}"
+    try:
+        with open(probe, "wb") as f:
+            f.write(b"\0" * PROBE_BYTES)
+            f.flush()
+            os.fsync(f.fileno())
+        return "ok"
+    except OSError as e:
+        return "full" if e.errno == errno.ENOSPC else "not writable"
+    finally:
+        probe.unlink(missing_ok=True)
+
+
+@router.get("/readyz")
+def readyz(store: StoreDep, settings: SettingsDep) -> Response:
+    """Ready when the job store answers and the data folder takes writes; what is down is named,
+    never where it lives."""
+    checks = {"store": "ok", "disk": disk_check(settings.data_dir)}
+    try:
+        store.counts()
+    except StoreUnavailable as e:
+        checks["store"] = e.reason
+    except Exception as e:  # a bug: still say "not ready", with the kind of error only
+        checks["store"] = f"error ({type(e).__name__})"
+    ready = all(v == "ok" for v in checks.values())
+    body = {"status": "ready" if ready else "unavailable", "checks": checks}
+    return JSONResponse(body, status_code=200 if ready else 503)
+
+
+@router.get("/presets", dependencies=[Depends(require_token)])
+def presets() -> dict:
+    """The training presets: description, notes and config of each."""
+    return preset_summaries()
+
+
+@router.get("/metrics", response_class=PlainTextResponse)
+def prometheus(request: Request, store: StoreDep) -> str:
+    """Job counts, queue depth, workers and training throughput, in Prometheus' text format."""
+    counts = store.counts()
+    running, _ = store.list(status=JobStatus.running, limit=500)
+    steps = sum(float(j.metrics.get("steps_per_s", 0.0) or 0.0) for j in running)
+    workers = getattr(request.app.state, "workers", [])
+    lines = ["# HELP quicknav_jobs Jobs by status.", "# TYPE quicknav_jobs gauge"]
+    lines += [f'quicknav_jobs{{status="{s}"}} {n}' for s, n in counts.items()]
+    lines += ["# HELP quicknav_queue_depth Jobs waiting for a worker.", "# TYPE quicknav_queue_depth gauge",
+              f"quicknav_queue_depth {counts.get('queued', 0)}",
+              "# HELP quicknav_busy_workers Jobs being run by a worker.", "# TYPE quicknav_busy_workers gauge",
+              f"quicknav_busy_workers {counts.get('running', 0)}",
+              "# HELP quicknav_embedded_workers In-process workers of this API process.",
+              "# TYPE quicknav_embedded_workers gauge", f"quicknav_embedded_workers {len(workers)}",
+              "# HELP quicknav_env_steps_per_second Training throughput of running jobs.",
+              "# TYPE quicknav_env_steps_per_second gauge", f"quicknav_env_steps_per_second {steps:.1f}"]  # fmt: skip
+    return "\n".join(lines) + "\n"
