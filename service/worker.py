@@ -186,18 +186,19 @@ class Worker:
     def job_dir(self, job_id: str) -> Path:
         return self.settings.artifacts_dir / job_id
 
-    def _stopper(self, job: Job, lost: threading.Event) -> Callable[[], str | None]:
+    def _stopper(self, job: Job, lost: threading.Event) -> Callable[..., str | None]:
         """Why the job should stop now (lost lease, shutdown, cancel), or None. Cheap to ask
-        often: the store is read at most every CANCEL_POLL_S seconds."""
+        often: the store is read at most every CANCEL_POLL_S seconds, or whenever ``fresh``
+        (at chunk ends, which also write progress and checkpoints)."""
         seen = {"at": 0.0, "cancel": False}
 
-        def reason() -> str | None:
+        def reason(fresh: bool = False) -> str | None:
             if lost.is_set():
                 return "lost"
             if self.shutdown.is_set():
                 return "shutdown"
             now = time.monotonic()
-            if now - seen["at"] >= CANCEL_POLL_S:
+            if fresh or now - seen["at"] >= CANCEL_POLL_S:
                 seen["at"] = now
                 try:
                     seen["cancel"] = self.store.get(job.id).cancel_requested
@@ -279,7 +280,7 @@ class Worker:
             metrics = {"chunk": r.chunk, "chunks": r.chunks, "env_steps": r.env_steps,
                        "total_steps": r.total_steps, "steps_per_s": r.steps_per_s, **r.metrics}  # fmt: skip
             self._report(job, r.env_steps / max(r.total_steps, 1), metrics)
-            reason = why()
+            reason = why(fresh=True)
             if reason:
                 stop_reason["why"] = reason
                 return True
@@ -316,7 +317,7 @@ class Worker:
 
         def on_batch(done: int, total: int) -> bool:
             self._report(job, done / total, {"episodes_done": done, "episodes": total})
-            reason = why()
+            reason = why(fresh=True)
             if reason:
                 stop_reason["why"] = reason
             return reason is not None
