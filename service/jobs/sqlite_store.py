@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import errno
+import functools
 import json
+import logging
+import os
 import re
 import sqlite3
 import threading
@@ -25,6 +29,7 @@ from service.jobs.models import (
     request_hash,
 )
 
+log = logging.getLogger("quicknav.store")
 SHORT_ID = re.compile(r"[0-9a-f]{4,31}")
 
 
@@ -63,9 +68,23 @@ CREATE TABLE IF NOT EXISTS events (
 
 
 class SQLiteJobStore:
+    """Jobs and their events in one SQLite file.
+
+    Next to the database lie ``<db>.reserve.0..3``, RESERVE_BYTES in all, given up one slice at a
+    time when the disk is full and a job must still be ended (finish, release, cancel, delete): a
+    job is never stuck as running because the write that fails it found no space, and DELETE, which
+    frees space, works on a full disk. The reserve grows back once there is room again (checked on
+    submit and claim, at most every few seconds).
+    """
+
+    RESERVE_BYTES = 1 << 20
+    RESERVE_SLICES = 4
+    RESERVE_CHECK_S = 5.0
+
     def __init__(self, path: str | Path, max_attempts: int = 3, max_events: int = 10_000):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._reserve_checked = 0.0
         self.max_attempts = max_attempts
         self.max_events = max_events
         self._lock = threading.RLock()
@@ -75,6 +94,49 @@ class SQLiteJobStore:
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.execute("PRAGMA busy_timeout=30000")
         self._db.executescript(_SCHEMA)
+        self._ensure_reserve(force=True)
+
+    # ------------------------------------------------------------------ disk reserve
+    def _reserve_files(self) -> list[Path]:
+        return [self.path.with_name(f"{self.path.name}.reserve.{i}") for i in range(self.RESERVE_SLICES)]
+
+    def _ensure_reserve(self, force: bool = False) -> None:
+        """Write the missing reserve slices if the disk has room for the whole reserve several times."""
+        now = time.monotonic()
+        if not force and now - self._reserve_checked < self.RESERVE_CHECK_S:
+            return
+        self._reserve_checked = now
+        missing = [f for f in self._reserve_files() if not f.exists()]
+        if not missing:
+            return
+        try:
+            st = os.statvfs(self.path.parent)
+            if st.f_bavail * st.f_frsize < 4 * self.RESERVE_BYTES:
+                return
+            size = self.RESERVE_BYTES // self.RESERVE_SLICES
+            for f in missing:
+                tmp = f.with_name(f.name + ".tmp")
+                with open(tmp, "wb") as out:
+                    out.write(b"\0" * size)
+                    out.flush()
+                    os.fsync(out.fileno())
+                os.replace(tmp, f)
+        except OSError:
+            for f in missing:
+                with contextlib.suppress(OSError):
+                    f.with_name(f.name + ".tmp").unlink()
+
+    def release_reserve(self) -> bool:
+        """Give one slice of the reserve back to the file system; True if there was one."""
+        for f in self._reserve_files():
+            try:
+                f.unlink()
+            except OSError:
+                continue
+            log.warning("disk full: released a %d KiB slice of the reserve next to %s to end a job",
+                        (self.RESERVE_BYTES // self.RESERVE_SLICES) >> 10, self.path.name)  # fmt: skip
+            return True
+        return False
 
     # ------------------------------------------------------------------ helpers
     def _tx(self):
@@ -332,3 +394,37 @@ class SQLiteJobStore:
 
 
 guard_store_errors(SQLiteJobStore, unavailable)
+
+
+def _ends_jobs_on_a_full_disk(cls):
+    """Ending a job (finish, release, cancel, delete) may spend the disk reserve; submit and claim
+    (which start work) first try to grow it back."""
+
+    def ending(fn):
+        @functools.wraps(fn)
+        def wrapped(self, *args, **kwargs):
+            try:
+                return fn(self, *args, **kwargs)
+            except StoreUnavailable as e:
+                if not e.disk_full or not self.release_reserve():
+                    raise
+            return fn(self, *args, **kwargs)
+
+        return wrapped
+
+    def starting(fn):
+        @functools.wraps(fn)
+        def wrapped(self, *args, **kwargs):
+            self._ensure_reserve()
+            return fn(self, *args, **kwargs)
+
+        return wrapped
+
+    for name in ("finish", "release", "cancel", "delete"):
+        setattr(cls, name, ending(getattr(cls, name)))
+    for name in ("submit", "claim"):
+        setattr(cls, name, starting(getattr(cls, name)))
+    return cls
+
+
+_ends_jobs_on_a_full_disk(SQLiteJobStore)
