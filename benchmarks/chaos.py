@@ -1,6 +1,6 @@
 """Chaos benchmark: does every accepted job end while workers and Redis are killed under it?
 
-    uv run python benchmarks/chaos.py [--jobs 24] [--workers 3] [--chaos-s 120] [--seed 0]
+    uv run python benchmarks/chaos.py [--jobs 30] [--workers 3] [--chaos-s 120] [--seed 0]
 
 Starts its own redis-server (append-only file, fsync always) on a free port, the API as
 `quicknav serve --no-worker` on the Redis store and several `quicknav worker` processes. It submits
@@ -157,7 +157,7 @@ def get_json(client: httpx.Client, path: str) -> dict | None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-    ap.add_argument("--jobs", type=int, default=24)
+    ap.add_argument("--jobs", type=int, default=30)
     ap.add_argument("--workers", type=int, default=3)
     ap.add_argument("--chaos-s", type=float, default=120.0)
     ap.add_argument("--settle-s", type=float, default=300.0)
@@ -183,13 +183,15 @@ def main() -> None:
     stop_faults = threading.Event()
     worker_kills: list[tuple[float, str | None]] = []  # (time, job the worker held)
 
-    def job_held_by(i: int) -> str | None:
-        proc = cluster.workers[i]
-        page = get_json(client, "/jobs?status=running&limit=100")
-        for job in (page or {}).get("jobs", []):
-            if proc is not None and f"-{proc.pid}-" in (job.get("worker") or ""):
-                return job["id"]
-        return None
+    def held_jobs() -> dict[int, str]:
+        """worker index -> the job it runs now."""
+        page = get_json(client, "/jobs?status=running&limit=500")
+        out = {}
+        for job in (page or {}).get("data", []):
+            for i, proc in enumerate(cluster.workers):
+                if proc is not None and f"-{proc.pid}-" in (job.get("worker") or ""):
+                    out[i] = job["id"]
+        return out
 
     def fault_loop() -> None:
         nonlocal redis_down_s
@@ -197,12 +199,14 @@ def main() -> None:
         while time.time() < t_end and not stop_faults.is_set():
             time.sleep(rng.uniform(4.0, 9.0))
             if rng.random() < 0.6:
-                i = rng.randrange(args.workers)
-                held = job_held_by(i)
+                held_by = held_jobs()  # mostly a busy worker: that is where a kill costs work
+                busy = sorted(held_by)
+                i = rng.choice(busy) if busy and rng.random() < 0.8 else rng.randrange(args.workers)
+                held = held_by.get(i)
                 cluster.kill_worker(i)
                 faults["worker SIGKILL"] += 1
                 worker_kills.append((time.time(), held))
-                log(f"SIGKILL worker {i}")
+                log(f"SIGKILL worker {i}" + (f" (running job {held[:8]})" if held else " (idle)"))
                 time.sleep(1.0)
                 cluster.restart_worker(i)
             else:
@@ -228,7 +232,7 @@ def main() -> None:
             body = {"policy": "random", "episodes": 64, "env": {"grid_size": 8, "max_steps": 60}}
             job = post_retrying(client, "/jobs/eval", body, submit_stats)
         else:
-            steps = 512 * rng.randint(20, 60)
+            steps = 512 * rng.randint(150, 450)
             body = {"preset": "demo", "overrides": {**TINY, "total_steps": steps}}
             job = post_retrying(client, "/jobs/train", body, submit_stats)
         accepted[job["id"]] = job["kind"]
@@ -265,7 +269,7 @@ def main() -> None:
         time.sleep(1.0)
     t_settled = time.time()
 
-    page = get_json(client, "/jobs?limit=1000") or {"jobs": [], "count": -1}
+    page = get_json(client, "/jobs?limit=500") or {"data": [], "count": -1}
     lost = [j for j in accepted if j not in final]
     stuck = [j for j in accepted if j in final and final[j]["status"] not in TERMINAL]
     duplicated = page["count"] - len(accepted)

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from pydantic import BaseModel
+from pydantic import BaseModel, Field
 
 from quicknav_core.config import EvalRequest, SweepRequest, TrainRequest
 from service.jobs.models import JobKind, JobStatus
@@ -27,6 +27,7 @@ class JobPublic(BaseModel):
     progress: float
     metrics: dict[str, Any]
     attempts: int
+    worker: str | None = Field(None, description="the worker running the job (or that ran it last)")
     error: str | None
     result: dict[str, Any] | None
     cancel_requested: bool

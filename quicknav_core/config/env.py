@@ -60,6 +60,12 @@ class RewardConfig(StrictModel):
     )
 
 
+def max_grid_for(room_size: float, robot_radius: float) -> int:
+    """The largest grid whose cells are wider than the robot."""
+    g = int(room_size / (2 * robot_radius))
+    return g - 1 if 2 * robot_radius * g >= room_size else g
+
+
 class EnvConfig(StrictModel):
     """Everything that defines a QuickNav environment. ``build(split)`` returns ``(env, params)``."""
 
@@ -140,7 +146,9 @@ class EnvConfig(StrictModel):
             raise ValueError(
                 f"robot_radius={self.robot_radius} m: the robot (diameter {2 * self.robot_radius:g} m)"
                 f" must be narrower than a one-cell corridor; allowed range 0 < robot_radius"
-                f" < {c / 2:g} m (cell size room_size/grid_size = {c:g} m)"
+                f" < {c / 2:g} m (cell size room_size/grid_size = {c:g} m), or grid_size <="
+                f" {max_grid_for(self.room_size, self.robot_radius)} with room_size={self.room_size:g} m,"
+                f" or room_size > {2 * self.robot_radius * self.grid_size:g} m"
             )
         step = self.max_wheel_speed * self.dt
         if step > c:

@@ -68,6 +68,11 @@ def test_config__robot_wider_than_corridor_on_fine_grid():
     # grid 64 in an 8 m room makes 0.125 m corridors: a 0.3 m robot cannot fit
     text = _error_text(grid_size=64)
     assert "robot_radius" in text and "narrower than a one-cell corridor" in text
+    # and the ways out, checked: grid 26 fits the 0.3 m robot in 8 m, 27 does not
+    assert "grid_size <= 26 with room_size=8 m" in text and "room_size > 19.2 m" in text
+    EnvConfig(grid_size=26)
+    assert "grid_size <= 26" in _error_text(grid_size=27)
+    EnvConfig(grid_size=40, room_size=12.1)  # 0.3025 m cells
 
 
 def test_overrides__nested_and_typed():

@@ -144,7 +144,8 @@ def test_cancel_queued_and_running_jobs(live):
         r = httpx.post(f"{live.url}/jobs/{running['id']}/cancel")
         assert r.json()["cancel_requested"]
         done = wait_status(live.url, running["id"], {"cancelled", "succeeded", "failed"})
-        assert done["status"] == "cancelled"
+        assert done["status"] == "cancelled" and done["worker"] == worker.id
+        assert httpx.get(f"{live.url}/jobs/{queued['id']}").json()["worker"] is None
         assert done["result"]["chunks_done"] < 40, "stopped at a chunk boundary, not at the end"
         assert (
             live.settings.artifacts_dir / running["id"] / "checkpoint" / "state.msgpack"

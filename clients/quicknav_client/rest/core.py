@@ -345,6 +345,7 @@ class JobFields:
         self.error: str | None = data.get("error")
         self.result: dict[str, Any] | None = data.get("result")
         self.attempts: int = int(data.get("attempts") or 0)
+        self.worker: str | None = data.get("worker")
         self.cancel_requested: bool = bool(data.get("cancel_requested"))
         self.created_at: float | None = data.get("created_at")
         self.started_at: float | None = data.get("started_at")

@@ -39,7 +39,7 @@ def public(job: Job) -> JobPublic:
     base = f"/jobs/{job.id}"
     return JobPublic(
         id=job.id, kind=job.kind, status=job.status, progress=job.progress, metrics=job.metrics,
-        attempts=job.attempts, error=job.error, result=job.result, cancel_requested=job.cancel_requested,
+        attempts=job.attempts, worker=job.worker, error=job.error, result=job.result, cancel_requested=job.cancel_requested,
         created_at=job.created_at, started_at=job.started_at, finished_at=job.finished_at,
         request=job.request, config=job.config,
         links={"self": base, "events": f"{base}/events", "metrics": f"{base}/metrics",
