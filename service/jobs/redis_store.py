@@ -165,27 +165,27 @@ class RedisJobStore:
         return jobs[offset : offset + limit], len(jobs)
 
     def _take(self, worker: str, lease_s: float) -> tuple[str, str, bool] | None:
-        """Next stream entry for this worker: (entry id, job id, reclaimed)."""
+        """Next stream entry for this worker: (entry id, job id, reclaimed). A job whose worker
+        stopped renewing its lease comes first: it was started before anything still queued."""
         queue = self._k("queue")
         self._ensure_group()
         try:
-            got = self.r.xreadgroup(GROUP, worker, {queue: ">"}, count=1)
+            res = self.r.xautoclaim(
+                queue, GROUP, worker, min_idle_time=int(lease_s * 1000), start_id="0-0", count=1
+            )
         except redis.ResponseError as e:
             if "NOGROUP" not in str(e):
                 raise
             self._ensure_group(force=True)  # a Redis that came back without its data
-            got = self.r.xreadgroup(GROUP, worker, {queue: ">"}, count=1)
-        if got:
-            entry_id, fields = got[0][1][0]
-            return entry_id, fields["job"], False
-        res = self.r.xautoclaim(
-            queue, GROUP, worker, min_idle_time=int(lease_s * 1000), start_id="0-0", count=1
-        )
-        entries = res[1] if res else []
-        entries = [e for e in entries if e and e[1]]
+            res = None
+        entries = [e for e in (res[1] if res else []) if e and e[1]]
         if entries:
             entry_id, fields = entries[0]
             return entry_id, fields["job"], True
+        got = self.r.xreadgroup(GROUP, worker, {queue: ">"}, count=1)
+        if got:
+            entry_id, fields = got[0][1][0]
+            return entry_id, fields["job"], False
         return None
 
     def _drop_entry(self, entry_id: str) -> None:

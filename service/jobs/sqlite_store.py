@@ -231,16 +231,16 @@ class SQLiteJobStore:
         now = time.time()
         with self._tx() as db:
             while True:
+                # a job whose worker stopped renewing its lease first: it started before the queue
                 row = db.execute(
-                    "SELECT data FROM jobs WHERE status = 'queued' ORDER BY created_at LIMIT 1"
-                ).fetchone()
-                reclaimed = False
+                    "SELECT data FROM jobs WHERE status = 'running' AND lease_until < ?"
+                    " ORDER BY lease_until LIMIT 1", (now,),
+                ).fetchone()  # fmt: skip
+                reclaimed = row is not None
                 if row is None:
                     row = db.execute(
-                        "SELECT data FROM jobs WHERE status = 'running' AND lease_until < ?"
-                        " ORDER BY lease_until LIMIT 1", (now,),
-                    ).fetchone()  # fmt: skip
-                    reclaimed = row is not None
+                        "SELECT data FROM jobs WHERE status = 'queued' ORDER BY created_at LIMIT 1"
+                    ).fetchone()
                 if row is None:
                     return None
                 job = Job.model_validate_json(row[0])

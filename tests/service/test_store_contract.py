@@ -127,6 +127,15 @@ def test_expired_lease_is_reclaimed_then_given_up(store):
     assert store.events(a.id)[-1][1]["type"] == "failed"
 
 
+def test_an_orphaned_job_is_taken_before_queued_ones(store):
+    a, _ = store.submit("train", {}, {})
+    store.claim("dead-1", lease_s=0.2)
+    b, _ = store.submit("train", {}, {})
+    time.sleep(0.35)  # dead-1 never renews its lease (every worker has the same lease_s)
+    assert store.claim("w2", lease_s=0.2).id == a.id  # not b, which was only queued
+    assert store.claim("w3", lease_s=0.2).id == b.id
+
+
 def test_delete_only_finished(store):
     a, _ = store.submit("train", {}, {})
     with pytest.raises(JobStateError):
