@@ -67,3 +67,26 @@ def test_cli__bad_config_is_reported_with_field_and_range(tmp_path):
     assert result.exit_code == 2 and "robot_radius" in result.output
     result = runner.invoke(app, ["env", "demo", "--policy", "smart"])
     assert result.exit_code == 2 and "allowed values" in result.output
+
+
+def test_fit_title__a_long_title_stays_inside_a_320_px_frame():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from quicknav_core.env.render import fit_title
+
+    title = "trained 0123456789abcdef (rppo-lstm) · test room 117 · step 243/300 · success · SPL 0.91"
+    fig = plt.figure(figsize=(3.2, 3.2), dpi=100)
+    try:
+        ax = fig.add_axes((0.02, 0.02, 0.96, 0.90))
+        renderer = fig.canvas.get_renderer()
+        plain = ax.set_title(title, fontsize=9.0).get_window_extent(renderer)
+        assert plain.x0 < 0 or plain.x1 > fig.bbox.width  # what the GIFs showed: cut off at both ends
+        fit_title(fig, ax, title)
+        box = ax.title.get_window_extent(renderer)
+        assert 0 <= box.x0 and box.x1 <= fig.bbox.width and box.y1 <= fig.bbox.height
+        assert ax.title.get_text().replace("\n", " ").split()[-1] == "0.91"  # nothing dropped
+    finally:
+        plt.close(fig)
