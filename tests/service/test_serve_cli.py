@@ -1,5 +1,6 @@
-"""`quicknav serve` as a user starts it: one process with the HTTP API, the gRPC Rollout server and a
-worker; a demo-sized job runs through the SDK and the same process serves a rollout stream."""
+"""`quicknav serve` as a user starts it: one command with the HTTP API, the gRPC Rollout server and a
+supervised worker process; a demo-sized job runs through the SDK and the same server process serves
+a rollout stream."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ from quicknav_client import QuickNavClient, RolloutClient
 from tests.service.conftest import free_port
 
 
-def test_serve__http_grpc_and_worker_in_one_process(tmp_path):
+def test_serve__http_grpc_and_a_supervised_worker_in_one_command(tmp_path):
     http_port, grpc_port = free_port(), free_port()
     env = {**os.environ, "QUICKNAV_DATA_DIR": str(tmp_path / "data")}
     env.pop("QUICKNAV_REDIS_URL", None)
