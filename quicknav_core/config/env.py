@@ -99,6 +99,11 @@ class EnvConfig(StrictModel):
         360.0, gt=0.0, le=360.0, description="lidar field of view, degrees"
     )
     lidar_max_range: float = Field(10.0, gt=0.0, le=10000.0, description="lidar range cap, metres")
+    lidar_method: Literal["auto", "crossings", "dda"] = Field(
+        "auto",
+        description="how beams are cast (same results): 'crossings' (all line crossings at once,"
+        " bit-packed walls), 'dda' (a cell walk per beam); 'auto' picks the faster for the backend",
+    )
 
     # Task
     goal_candidates: int = Field(

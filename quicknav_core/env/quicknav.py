@@ -13,7 +13,7 @@ from gymnax.environments import environment, spaces
 from quicknav_core.env.bits import num_words, pack_rows, pack_rows_np, read_bit, set_bit
 from quicknav_core.env.constants import HIT_GOAL, HIT_WALL, check_split, observation_bounds
 from quicknav_core.env.dynamics import drive, move_with_sliding, wheel_command
-from quicknav_core.env.lidar import cast_lidar_bits
+from quicknav_core.env.lidar import cast_lidar_packed
 from quicknav_core.env.reward import reward_numbers, reward_terms, total_reward
 from quicknav_core.env.rng import hash_key_bits, uniform_from_bits
 from quicknav_core.env.rooms import free_cell_table, make_room_bank
@@ -297,7 +297,7 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
 
     def with_lidar(self, state: EnvState, params: EnvParams) -> EnvState:
         """State with the lidar scan of its current pose."""
-        ranges, hits = cast_lidar_bits(
+        ranges, hits = cast_lidar_packed(self.config.lidar_method)(
             state.pos,
             state.theta,
             state.goal,

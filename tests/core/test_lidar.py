@@ -11,8 +11,10 @@ from quicknav_core.env.rooms import make_room_bank
 from tests.core.reference import brute_force_lidar, disc_wall_clearance
 
 cast_batch = jax.jit(
-    jax.vmap(cast_lidar, in_axes=(0, 0, 0, 0, None, None, None, None, None)), static_argnums=(4, 5)
+    jax.vmap(cast_lidar, in_axes=(0, 0, 0, 0, None, None, None, None, None, None)),
+    static_argnums=(4, 5, 9),
 )
+METHODS = ["crossings", "dda"]
 
 
 def _random_poses(rooms, cell, radius, rng, per_room):
@@ -34,6 +36,7 @@ def _random_poses(rooms, cell, radius, rng, per_room):
     return out
 
 
+@pytest.mark.parametrize("method", METHODS)
 @pytest.mark.parametrize(
     ("grid", "beams", "fov", "max_range"),
     [
@@ -43,7 +46,7 @@ def _random_poses(rooms, cell, radius, rng, per_room):
         (40, 12, 360.0, 2.0),
     ],  # 40: carved with return_prob 0.02 below,
 )
-def test_lidar__matches_brute_force(grid, beams, fov, max_range):
+def test_lidar__matches_brute_force(grid, beams, fov, max_range, method):
     cfg = EnvConfig(
         grid_size=grid, lidar_beams=beams, lidar_fov_deg=fov, lidar_max_range=max_range,
         robot_radius=min(0.15, 0.45 * 8.0 / grid), train_rooms=40,
@@ -58,7 +61,7 @@ def test_lidar__matches_brute_force(grid, beams, fov, max_range):
     goal = np.stack([p[3] for p in poses]).astype(np.float32)
     angles = beam_angles(beams, fov)
     ranges, hits = cast_batch(
-        pos, theta, goal, walls, beams, fov, cfg.cell_size, max_range, cfg.goal_radius
+        pos, theta, goal, walls, beams, fov, cfg.cell_size, max_range, cfg.goal_radius, method
     )
     ranges, hits = np.asarray(ranges), np.asarray(hits)
     worst = 0.0
@@ -81,7 +84,8 @@ def test_lidar__matches_brute_force(grid, beams, fov, max_range):
     assert {HIT_WALL, HIT_GOAL} <= set(np.unique(hits)) or max_range > 5
 
 
-def test_lidar__short_range_reports_nothing_hit():
+@pytest.mark.parametrize("method", METHODS)
+def test_lidar__short_range_reports_nothing_hit(method):
     walls = np.ones((8, 8), bool)
     walls[1:-1, 1:-1] = False
     ranges, hits = cast_lidar(
@@ -94,12 +98,14 @@ def test_lidar__short_range_reports_nothing_hit():
         1.0,
         1.5,
         0.3,
+        method,
     )
     assert (np.asarray(hits) == HIT_NONE).all()
     assert np.allclose(np.asarray(ranges), 1.5)
 
 
-def test_lidar__hand_built_distances_and_goal():
+@pytest.mark.parametrize("method", METHODS)
+def test_lidar__hand_built_distances_and_goal(method):
     # 8x8 room of 1 m cells, free inside; robot at (2.5, 4.5) facing +x, goal at (5.5, 4.5)
     walls = np.ones((8, 8), bool)
     walls[1:-1, 1:-1] = False
@@ -114,6 +120,7 @@ def test_lidar__hand_built_distances_and_goal():
         1.0,
         10.0,
         0.5,
+        method,
     )
     np.testing.assert_allclose(np.asarray(ranges), [2.5, 2.5, 1.5, 3.5], atol=1e-5)
     assert list(np.asarray(hits)) == [HIT_GOAL, HIT_WALL, HIT_WALL, HIT_WALL]
@@ -125,3 +132,30 @@ def test_beam_angles__fov_ends_included_and_full_circle_even():
     b = np.rad2deg(np.asarray(beam_angles(4, 360.0)))
     np.testing.assert_allclose(b, [0, 90, 180, 270], atol=1e-4)
     assert np.asarray(beam_angles(1, 90.0)).tolist() == [0.0]
+
+
+def test_lidar_method__auto_follows_the_measured_table_and_bad_names_are_refused():
+    from quicknav_core.env.lidar import FASTEST_LIDAR, resolve_lidar_method
+
+    assert resolve_lidar_method("auto", "cpu") == FASTEST_LIDAR["cpu"]
+    assert resolve_lidar_method("dda", "cpu") == "dda"
+    with pytest.raises(ValueError, match="allowed 'auto'"):
+        resolve_lidar_method("raymarch")
+    with pytest.raises(ValueError, match="lidar_method"):
+        EnvConfig(lidar_method="raymarch")
+
+
+def test_lidar_method__envs_step_identically_with_either_caster():
+    """Whole env steps (reset, moves, auto-reset) give the same observations with both casters."""
+    from quicknav_core.env.batch import BatchedEnv
+
+    base = {"grid_size": 8, "lidar_beams": 12, "train_rooms": 16, "test_rooms": 8, "max_steps": 15}
+    envs = {m: BatchedEnv(EnvConfig(**base, lidar_method=m), 32, seed=3) for m in METHODS}
+    obs = {m: e.reset() for m, e in envs.items()}
+    np.testing.assert_allclose(obs["crossings"], obs["dda"], atol=1e-5)
+    rng = np.random.default_rng(0)
+    for _ in range(30):
+        actions = rng.uniform(-1, 1, (32, 2)).astype(np.float32)
+        out = {m: e.step(actions) for m, e in envs.items()}
+        np.testing.assert_allclose(out["crossings"].obs, out["dda"].obs, atol=1e-5)
+        np.testing.assert_array_equal(out["crossings"].reward, out["dda"].reward)

@@ -86,7 +86,7 @@ def test_fit_title__a_long_title_stays_inside_a_320_px_frame():
         assert plain.x0 < 0 or plain.x1 > fig.bbox.width  # what the GIFs showed: cut off at both ends
         fit_title(fig, ax, title)
         box = ax.title.get_window_extent(renderer)
-        assert 0 <= box.x0 and box.x1 <= fig.bbox.width and box.y1 <= fig.bbox.height
+        assert box.x0 >= 0 and box.x1 <= fig.bbox.width and box.y1 <= fig.bbox.height
         assert ax.title.get_text().replace("\n", " ").split()[-1] == "0.91"  # nothing dropped
     finally:
         plt.close(fig)
