@@ -55,6 +55,10 @@ def bench_env(
             help="CPU cores exposed to JAX as devices, batches sharded over them (0: all cores, max 8).",
         ),
     ] = 0,
+    lidar_method: Annotated[
+        str,
+        typer.Option(help="Lidar caster: auto, crossings or dda (see EnvConfig.lidar_method)."),
+    ] = "auto",
     out: Annotated[Path, typer.Option(help="Folder for bench.json and the PNGs.")] = Path("bench"),
 ) -> None:
     """Environment throughput: NumPy twin vs JAX (1 env, scan, vmapped batches) per grid size."""
@@ -79,6 +83,8 @@ def bench_env(
         fail(f"--grid {bad[0]}: allowed range 4..128")
     if batch and min(batch) < 1:
         fail(f"--batch {min(batch)}: allowed range >= 1")
+    if lidar_method not in ("auto", "crossings", "dda"):
+        fail(f"--lidar-method {lidar_method}: allowed auto, crossings, dda")
     import jax
 
     batches = batch or list(DEFAULT_BATCHES)
@@ -86,7 +92,7 @@ def bench_env(
         batches += list(GPU_EXTRA_BATCHES)
     cfg = BenchConfig(
         grids=grids, batches=batches, beams=beams, steps=steps, repeats=repeats, budget_s=budget,
-        final_obs=final_obs,
+        final_obs=final_obs, lidar_method=lidar_method,
     )  # fmt: skip
     with console.status("benchmarking...") as status:
         report = run_bench(cfg, progress=lambda msg: status.update(msg))

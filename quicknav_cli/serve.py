@@ -67,19 +67,27 @@ def serve(
     console.print(f"QuickNav API on http://{settings.host}:{settings.port} (docs at /docs), store: {store},"
                   f" in-process workers: {settings.max_concurrent_jobs if settings.embedded_worker else 0}",
                   soft_wrap=True)  # fmt: skip
-    rollout = None
+    rollout = announcer = None
     if settings.grpc_enabled:
-        from service.rollout.server import BackgroundServer
+        import socket
 
-        rollout = BackgroundServer(settings).start()
-        console.print(f"gRPC Rollout on {settings.host}:{rollout.port}", soft_wrap=True)
-    if api_workers > 1:
-        # several processes: each builds its app from the same QUICKNAV_* settings
-        os.environ["QUICKNAV_EMBEDDED_WORKER"] = "false" if not settings.embedded_worker else "true"
-        uvicorn.run("service.api.main:create_app", factory=True, host=settings.host, port=settings.port,
-                    workers=api_workers, log_level="warning")  # fmt: skip
-    else:
-        uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="info")
+        from service.settings import make_store
+
+        rollout, announcer = start_rollout(settings, make_store(settings), settings.grpc_port,
+                                           f"serve-{socket.gethostname()}-{os.getpid()}")  # fmt: skip
+    try:
+        if api_workers > 1:
+            # several processes: each builds its app from the same QUICKNAV_* settings
+            os.environ["QUICKNAV_EMBEDDED_WORKER"] = "false" if not settings.embedded_worker else "true"
+            uvicorn.run("service.api.main:create_app", factory=True, host=settings.host,
+                        port=settings.port, workers=api_workers, log_level="warning")  # fmt: skip
+        else:
+            uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="info")
+    finally:
+        if announcer is not None:
+            announcer.stop()
+        if rollout is not None:
+            rollout.stop()
 
 
 def rollout_server(
@@ -125,6 +133,14 @@ def worker(
             help="Run queued jobs (and jobs orphaned by a dead worker), exit when none is queued or running."
         ),
     ] = False,
+    grpc_port: Annotated[
+        int | None,
+        typer.Option(
+            min=0, max=65535,
+            help="Also serve gRPC Rollout on this port, on this worker's device, and list it at"
+            " GET /rollout/endpoints (QUICKNAV_WORKER_GRPC_PORT; 0 = any free port).",
+        ),
+    ] = None,
 ) -> None:
     """A worker process: claims jobs from the store (Redis for several machines), runs them."""
     import signal
@@ -133,7 +149,12 @@ def worker(
     from service.worker import Worker
 
     settings = service_settings()
-    w = Worker(make_store(settings), settings)
+    store = make_store(settings)
+    w = Worker(store, settings)
+    port = grpc_port if grpc_port is not None else settings.worker_grpc_port
+    rollout = announcer = None
+    if port is not None and not burst:
+        rollout, announcer = start_rollout(settings, store, port, f"worker-{w.id}")
 
     def on_term(signum, frame):
         console.print("stopping at the next chunk boundary (checkpoint kept, job handed back)")
@@ -143,8 +164,33 @@ def worker(
     signal.signal(signal.SIGINT, on_term)
     console.print(f"worker {w.id} on {'redis' if settings.redis_url else settings.data_dir / 'jobs.db'}",
                   soft_wrap=True)  # fmt: skip
-    if burst:
-        ran = w.run_burst()
-        console.print(f"burst done: {ran} job(s) run, none queued or running")
-    else:
-        w.run_forever()
+    try:
+        if burst:
+            ran = w.run_burst()
+            console.print(f"burst done: {ran} job(s) run, none queued or running")
+        else:
+            w.run_forever()
+    finally:
+        if announcer is not None:
+            announcer.stop()
+        if rollout is not None:
+            rollout.stop()
+
+
+def start_rollout(settings, store, port: int, name: str):
+    """The gRPC Rollout server of this process, announced in the store for the API to list."""
+    enable_compilation_cache()
+    from service.rollout.announce import EndpointAnnouncer, advertised_address
+    from service.rollout.server import BackgroundServer
+
+    try:
+        rollout = BackgroundServer(settings, port=port).start()
+    except OSError as e:
+        fail(str(e))
+    address = advertised_address(settings.rollout_advertise, rollout.port, settings.host)
+    announcer = EndpointAnnouncer(store, name, address, rollout.servicer,
+                                  interval_s=settings.heartbeat_s,
+                                  max_sessions=settings.rollout_max_sessions).start()  # fmt: skip
+    console.print(f"gRPC Rollout on {settings.host}:{rollout.port}, announced as {address}",
+                  soft_wrap=True)  # fmt: skip
+    return rollout, announcer

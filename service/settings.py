@@ -30,6 +30,14 @@ class Settings(BaseSettings):
     grpc_enabled: bool = Field(
         True, description="start the gRPC Rollout server in `quicknav serve`"
     )
+    rollout_advertise: str | None = Field(
+        None, description="host[:port] remote agents use to reach this process's Rollout server"
+        " (default: this machine's host name and the bound port)",
+    )
+    worker_grpc_port: int | None = Field(
+        None, ge=0, le=65535,
+        description="`quicknav worker` also serves gRPC Rollout on this port (unset: it does not)",
+    )
     rollout_max_sessions: int = Field(16, ge=1, le=10_000, description="concurrent rollout streams")
     grpc_max_message_mb: int = Field(64, ge=1, le=2047, description="largest gRPC message, MiB")
     rollout_policy_max_envs: int = Field(256, ge=1, le=1024, description="envs in policy mode")

@@ -48,20 +48,26 @@ def bench_row(
 ) -> TrainBenchRow:
     from quicknav_core.train.trainers import make_trainer
 
-    steps = max(chunk_steps * (chunks + 1), get_preset(preset).steps_per_update)
     cfg = resolve_train({"preset": preset, "overrides": {
-        "chunk_steps": chunk_steps, "total_steps": steps, **as_dict(overrides)}})  # fmt: skip
+        "chunk_steps": chunk_steps, **as_dict(overrides)}})  # fmt: skip
+    # room for the warm-up chunk and every timed one, whatever the chunk rounds up to
+    per_chunk = max(chunk_steps, cfg.steps_per_update)
+    cfg = cfg.model_copy(update={"total_steps": per_chunk * (chunks + 1)})
     trainer = make_trainer(cfg)
     state = trainer.init_state()
     t0 = time.perf_counter()
     state, _ = trainer.run_chunk(state)
     first = time.perf_counter() - t0
-    secs = []
+    secs, done = [], []
     for _ in range(chunks):
+        before = trainer.env_steps(state)
         t0 = time.perf_counter()
         state, _ = trainer.run_chunk(state)
         secs.append(time.perf_counter() - t0)
-    rate = trainer.steps_per_chunk / statistics.median(secs)
+        done.append(trainer.env_steps(state) - before)
+    if min(done) <= 0:
+        raise RuntimeError(f"{name}: a timed chunk made no env steps (total_steps too small)")
+    rate = statistics.median(n / s for n, s in zip(done, secs, strict=True))
     return TrainBenchRow(
         name, preset, cfg.trainer_kind, cfg.network.kind, cfg.num_envs, trainer.steps_per_chunk,
         round(first, 3), [round(s, 4) for s in secs], rate, TARGETS.get(name),

@@ -110,6 +110,25 @@ def env_and_params(config: EnvConfig, split: Split):
     return _PARAMS[key]
 
 
+@jax.jit
+def _take_rows(x: jax.Array, idx: jax.Array) -> jax.Array:
+    return jnp.take(x, idx, axis=0)
+
+
+def gather_rows(x: jax.Array, idx: np.ndarray, width: int) -> np.ndarray:
+    """``x[idx]`` as numpy, gathered on x's device so only those rows are copied to the host.
+
+    The index is padded to a power of two (at least 8) so a handful of compiled gathers serve
+    every count of finished episodes."""
+    n = int(idx.size)
+    if n == 0:
+        return np.zeros((0, width), np.float32)
+    size = max(8, 1 << (n - 1).bit_length())
+    padded = np.zeros(size, np.int32)
+    padded[:n] = idx
+    return np.asarray(_take_rows(x, padded))[:n]
+
+
 class BatchedEnv:
     """``num_envs`` auto-resetting envs on the device; ``step`` takes and returns numpy."""
 
@@ -149,11 +168,7 @@ class BatchedEnv:
         self._counter, self.state, obs, reward, term, trunc, coll, final = out
         term, trunc = np.asarray(term), np.asarray(trunc)
         done_idx = np.flatnonzero(term | trunc).astype(np.int32)
-        # the final observations cross to the host only when an episode ended
-        final_obs = (
-            np.asarray(final)[done_idx]
-            if done_idx.size
-            else np.zeros((0, self.obs_dim), np.float32)
-        )
+        # only the rows of envs whose episode ended cross to the host, gathered on the device
+        final_obs = gather_rows(final, done_idx, self.obs_dim)
         return StepResult(np.asarray(obs), np.asarray(reward), term, trunc, np.asarray(coll),
                           done_idx, final_obs)  # fmt: skip

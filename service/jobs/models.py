@@ -96,7 +96,8 @@ class StoreUnavailable(Exception):
 
 # the store protocol's methods (the ones a guard wraps)
 STORE_METHODS = ("submit", "get", "list", "claim", "heartbeat", "progress", "finish", "release",
-                 "cancel", "delete", "publish", "events", "counts", "resolve_id")  # fmt: skip
+                 "cancel", "delete", "publish", "events", "counts", "resolve_id",
+                 "register_endpoint", "endpoints", "unregister_endpoint")  # fmt: skip
 
 
 def guard_store_errors(cls, translate):
@@ -197,3 +198,13 @@ class JobStore(Protocol):
     def resolve_id(self, prefix: str) -> str:
         """The full id of the one job whose id starts with ``prefix`` (JobNotFound if none,
         AmbiguousId if several)."""
+
+    def register_endpoint(self, endpoint: dict[str, Any], ttl_s: float) -> None:
+        """Announce a gRPC Rollout endpoint (``endpoint["worker"]`` names it) for ``ttl_s``
+        seconds; announcing again renews it."""
+
+    def endpoints(self) -> list[dict[str, Any]]:
+        """The Rollout endpoints announced and not yet expired, oldest first."""
+
+    def unregister_endpoint(self, worker: str) -> None:
+        """Withdraw an endpoint (a worker that stops)."""

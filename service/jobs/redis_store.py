@@ -364,6 +364,28 @@ class RedisJobStore:
     def counts(self):
         return {s.value: int(self.r.scard(self._k("status", s.value))) for s in JobStatus}
 
+    # ------------------------------------------------------------------ rollout endpoints
+    def register_endpoint(self, endpoint, ttl_s):
+        key = self._k("endpoint", endpoint["worker"])
+        first = self.r.set(key + ":since", json.dumps(time.time()), nx=True, px=int(ttl_s * 1000))
+        if not first:
+            self.r.pexpire(key + ":since", int(ttl_s * 1000))
+        self.r.set(key, json.dumps({**endpoint, "seen": time.time()}), px=int(ttl_s * 1000))
+
+    def endpoints(self):
+        out = []
+        for key in self.r.scan_iter(match=self._k("endpoint", "*"), count=500):
+            if key.endswith(":since"):
+                continue
+            raw, since = self.r.get(key), self.r.get(key + ":since")
+            if raw:
+                out.append({**json.loads(raw), "since": json.loads(since) if since else None})
+        return sorted(out, key=lambda e: (e.get("since") or 0.0, e["worker"]))
+
+    def unregister_endpoint(self, worker):
+        key = self._k("endpoint", worker)
+        self.r.delete(key, key + ":since")
+
     def resolve_id(self, prefix):
         if not SHORT_ID.fullmatch(prefix):
             raise JobNotFound(prefix)

@@ -58,6 +58,12 @@ CREATE TABLE IF NOT EXISTS jobs (
     data TEXT NOT NULL
 );
 CREATE INDEX IF NOT EXISTS jobs_status_created ON jobs (status, created_at);
+CREATE TABLE IF NOT EXISTS endpoints (
+    worker TEXT PRIMARY KEY,
+    since REAL NOT NULL,
+    expires_at REAL NOT NULL,
+    data TEXT NOT NULL
+);
 CREATE TABLE IF NOT EXISTS events (
     job_id TEXT NOT NULL,
     seq INTEGER NOT NULL,
@@ -387,6 +393,30 @@ class SQLiteJobStore:
         out = {s.value: 0 for s in JobStatus}
         out.update({s: int(n) for s, n in rows})
         return out
+
+    # ------------------------------------------------------------------ rollout endpoints
+    def register_endpoint(self, endpoint, ttl_s):
+        now = time.time()
+        with self._tx() as db:
+            db.execute("DELETE FROM endpoints WHERE expires_at < ?", (now,))
+            db.execute(
+                "INSERT INTO endpoints (worker, since, expires_at, data) VALUES (?, ?, ?, ?)"
+                " ON CONFLICT(worker) DO UPDATE SET expires_at = excluded.expires_at,"
+                " data = excluded.data",
+                (endpoint["worker"], now, now + ttl_s, json.dumps({**endpoint, "seen": now})),
+            )
+
+    def endpoints(self):
+        with self._lock:
+            rows = self._db.execute(
+                "SELECT since, data FROM endpoints WHERE expires_at >= ? ORDER BY since, worker",
+                (time.time(),),
+            ).fetchall()
+        return [{**json.loads(data), "since": since} for since, data in rows]
+
+    def unregister_endpoint(self, worker):
+        with self._tx() as db:
+            db.execute("DELETE FROM endpoints WHERE worker = ?", (worker,))
 
     def close(self) -> None:
         with self._lock:

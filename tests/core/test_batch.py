@@ -99,3 +99,17 @@ def test_batched_env__sharded_over_two_cpu_devices_equals_one_device():
     out = subprocess.run([sys.executable, "-c", _SHARDED], env=env, capture_output=True, text=True,
                          timeout=300)  # fmt: skip
     assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr[-3000:]
+
+
+def test_gather_rows__matches_numpy_indexing_with_few_compiled_shapes():
+    from quicknav_core.env.batch import _take_rows, gather_rows
+
+    x = jnp.arange(300 * 5, dtype=jnp.float32).reshape(300, 5)
+    rng = np.random.default_rng(0)
+    for n in [0, 1, 7, 8, 9, 33, 100, 300]:
+        idx = np.sort(rng.choice(300, n, replace=False)).astype(np.int32)
+        got = gather_rows(x, idx, 5)
+        assert got.shape == (n, 5)
+        np.testing.assert_array_equal(got, np.asarray(x)[idx])
+    # one compiled gather per power of two from 8 up, not one per count
+    assert _take_rows._cache_size() <= 7

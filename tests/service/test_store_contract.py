@@ -145,3 +145,22 @@ def test_delete_only_finished(store):
     with pytest.raises(JobNotFound):
         store.get(a.id)
     assert store.list()[1] == 0
+
+
+def test_rollout_endpoints_expire_unless_renewed(store):
+    store.register_endpoint({"worker": "w1", "address": "gpu-a:50051", "device": "cuda"}, ttl_s=0.4)
+    time.sleep(0.05)
+    store.register_endpoint({"worker": "w2", "address": "gpu-b:50051", "device": "cuda"}, ttl_s=30)
+    listed = store.endpoints()
+    assert [e["worker"] for e in listed] == ["w1", "w2"]  # oldest first
+    assert listed[0]["address"] == "gpu-a:50051" and listed[0]["since"] <= listed[1]["since"]
+    since = listed[0]["since"]
+    time.sleep(0.25)
+    store.register_endpoint({"worker": "w1", "address": "gpu-a:50051", "sessions": 3}, ttl_s=0.4)
+    time.sleep(0.25)  # past the first ttl, within the renewed one
+    w1 = store.endpoints()[0]
+    assert w1["worker"] == "w1" and w1["sessions"] == 3 and w1["since"] == since
+    time.sleep(0.5)  # w1 stops renewing
+    assert [e["worker"] for e in store.endpoints()] == ["w2"]
+    store.unregister_endpoint("w2")
+    assert store.endpoints() == []

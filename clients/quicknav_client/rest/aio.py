@@ -200,6 +200,11 @@ class AsyncQuickNavClient:
         """GET /readyz: the job store answers."""
         return await self._get_json("/readyz")
 
+    async def rollout_endpoints(self) -> list[dict]:
+        """The gRPC Rollout servers the service knows (``address``, ``backend``, ``device``,
+        ``sessions``, ``max_sessions``); pass an ``address`` to ``RolloutClient``."""
+        return (await self._get_json("/rollout/endpoints"))["endpoints"]
+
     async def presets(self) -> dict[str, dict]:
         """The server's training presets."""
         return await self._get_json("/presets")

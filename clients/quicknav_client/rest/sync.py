@@ -187,6 +187,11 @@ class QuickNavClient:
         """GET /readyz: the job store answers (ServerError with its reason if not)."""
         return self._get_json("/readyz")
 
+    def rollout_endpoints(self) -> list[dict]:
+        """The gRPC Rollout servers the service knows (``address``, ``backend``, ``device``,
+        ``sessions``, ``max_sessions``); pass an ``address`` to ``RolloutClient``."""
+        return (self._get_json("/rollout/endpoints"))["endpoints"]
+
     def presets(self) -> dict[str, dict]:
         """The server's training presets: ``{name: {"description", "config", ...}}``."""
         return self._get_json("/presets")

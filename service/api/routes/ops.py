@@ -56,6 +56,14 @@ def readyz(store: StoreDep, settings: SettingsDep) -> Response:
     return JSONResponse(body, status_code=200 if ready else 503)
 
 
+@router.get("/rollout/endpoints", dependencies=[Depends(require_token)])
+def rollout_endpoints(store: StoreDep) -> dict:
+    """The gRPC Rollout servers that announced themselves: the workers that own an accelerator
+    (`quicknav worker --grpc-port`) and the all-in-one `quicknav serve`, oldest first."""
+    endpoints = store.endpoints()
+    return {"endpoints": endpoints, "count": len(endpoints)}
+
+
 @router.get("/presets", dependencies=[Depends(require_token)])
 def presets() -> dict:
     """The training presets: description, notes and config of each."""
