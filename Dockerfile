@@ -2,10 +2,10 @@
 # worker`) and every other `quicknav` command.
 #
 #   docker build -t quicknav:cpu .                              # CPU JAX
-#   docker build -t quicknav:cuda --build-arg JAX_EXTRA=cuda .  # CUDA 12 JAX for GPU workers
+#   docker build -t quicknav:cuda --build-arg JAX_EXTRA=cuda .  # CUDA 13 JAX for GPU workers
 #   docker run --rm -p 8000:8000 -p 50051:50051 quicknav:cpu    # API + in-process worker, SQLite in /data
 #
-# The CUDA libraries come as wheels (jax[cuda12]), so the base stays python:slim; the host needs only
+# The CUDA libraries come as wheels (jax[cuda13]), so the base stays python:slim; the host needs only
 # the NVIDIA driver and the NVIDIA container toolkit. Needs BuildKit (the default builder since
 # Docker 23) for the RUN --mount cache and bind mounts. See deploy/README.md.
 
@@ -24,7 +24,7 @@ ENV UV_COMPILE_BYTECODE=1 \
     UV_PROJECT_ENVIRONMENT=/app/.venv
 WORKDIR /app
 
-# empty: CPU JAX; "cuda": the `cuda` extra of pyproject.toml (jax[cuda12])
+# empty: CPU JAX; "cuda": the `cuda` extra of pyproject.toml (jax[cuda13]; "cuda12" for older drivers)
 ARG JAX_EXTRA=""
 
 # 1. Third-party dependencies only, from the lock: this layer is rebuilt when uv.lock or a

@@ -14,7 +14,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from quicknav_core.config import get_preset, resolve_train
+from quicknav_core.config import resolve_train
 from quicknav_core.config.overrides import as_dict
 
 # (row name, preset, chunk size in env steps)

@@ -122,8 +122,16 @@ def published_ports(svc: dict) -> list[tuple[int, int]]:
             continue
         spec = interpolate(str(p), {}).split("/")[0]
         *_, host, container = spec.split(":")
-        out.append((int(host), int(container)))
+        out.append((int(host.split("-")[0]), int(container)))  # a range: its first port
     return out
+
+
+def published_range(svc: dict) -> range:
+    """The host ports of a service's one published port range ("50051-50058:50051")."""
+    (p,) = svc.get("ports") or [None]
+    host = interpolate(str(p), {}).split("/")[0].split(":")[-2]
+    first, _, last = host.partition("-")
+    return range(int(first), int(last or first) + 1)
 
 
 # ---------------------------------------------------------------- helpers: Dockerfile
@@ -233,11 +241,12 @@ def test_compose__every_command_is_a_real_quicknav_command(compose):
     parsed = {name: parse_cli(svc["command"]) for name, svc in services.items()}
     assert parsed["api"] == ("serve", parsed["api"][1])
     assert parsed["api"][1]["no_worker"] is True, "the API leaves jobs to the worker services"
-    assert not parsed["api"][1].get("no_grpc"), "the API serves gRPC rollouts on its port"
+    assert parsed["api"][1]["no_grpc"] is True, "rollouts are served where the GPU is, not by the API"
     for name, (path, params) in parsed.items():
         if name != "api":
             assert path == "worker", name
             assert params["burst"] is False, f"{name} must keep running, not exit when idle"
+            assert params["grpc_port"] == DEFAULT_GRPC_PORT, f"{name} serves gRPC Rollout"
 
 
 def test_compose__quicknav_variables_are_settings_that_validate(compose, monkeypatch):
@@ -283,14 +292,22 @@ def test_compose__redis_url_points_at_the_compose_redis_service(compose, monkeyp
 def test_compose__published_ports_are_the_settings_ports(compose, monkeypatch):
     api = compose["services"]["api"]
     settings = settings_from(service_env(api), monkeypatch)
-    assert (settings.port, settings.grpc_port) == (DEFAULT_PORT, DEFAULT_GRPC_PORT)
-    assert settings.grpc_enabled
-    ports = published_ports(api)
-    assert sorted(c for _, c in ports) == sorted([settings.port, settings.grpc_port])
-    assert all(host == container for host, container in ports)
+    assert settings.port == DEFAULT_PORT
+    assert published_ports(api) == [(settings.port, settings.port)], "the API serves HTTP only"
+    ranges = []
     for name, svc in quicknav_services(compose).items():
-        if name != "api":
-            assert not svc.get("ports"), f"{name} serves nothing"
+        if name == "api":
+            continue
+        _, params = parse_cli(svc["command"])
+        ((_, container),) = published_ports(svc)
+        assert container == params["grpc_port"], f"{name} publishes the port it serves gRPC on"
+        # replicas bind 0.0.0.0 (the image's QUICKNAV_HOST), so the port is reachable from outside
+        assert settings_from(service_env(svc), monkeypatch).host == "0.0.0.0", name
+        ranges.append(published_range(svc))
+        assert len(ranges[-1]) >= 4, f"{name}: room for scaled replicas"
+    # the GPU and CPU workers' host port ranges never collide (both may run)
+    assert not set(ranges[0]) & set(ranges[1])
+    assert DEFAULT_GRPC_PORT in ranges[0], "the first GPU worker answers on the usual gRPC port"
 
 
 def test_compose__api_healthcheck_hits_the_health_route(compose, monkeypatch, api_client):
@@ -433,3 +450,25 @@ def test_deploy_readme__names_only_real_variables():
             assert name in elsewhere[name], f"{name} is no longer read"
         else:
             assert name[9:].lower() in Settings.model_fields, f"deploy/README.md: {name}"
+
+
+def test_lock__the_cuda_extra_resolves_to_cuda_13_plugins_matching_jaxlib():
+    """`uv sync --extra cuda` installs from uv.lock (CI runs `uv sync --locked`, which fails on a
+    stale lock): the extra must be locked, for CUDA 13 (the GPUs' driver), at jaxlib's version."""
+    import tomllib
+
+    root = Path(__file__).resolve().parents[2]
+    lock = tomllib.loads((root / "uv.lock").read_text())
+    packages = lock["package"]
+
+    def versions(name: str) -> set[str]:
+        return {p["version"] for p in packages if p["name"] == name}
+
+    (ours,) = [p for p in packages if p["name"] == "quicknav"]
+    cuda = ours["optional-dependencies"]["cuda"]
+    # one jax per Python fork of the lock, each with the cuda13 extra
+    assert {d["name"] for d in cuda} == {"jax"} and all("cuda13" in d["extra"] for d in cuda)
+    assert {d["version"] for d in cuda} <= versions("jax-cuda13-plugin")
+    assert versions("jax-cuda13-plugin") and versions("jax-cuda13-pjrt")
+    assert versions("jax-cuda13-plugin") <= versions("jaxlib")
+    assert versions("jax-cuda13-pjrt") == versions("jax-cuda13-plugin")
