@@ -34,9 +34,10 @@ __all__ = [
 ]  # fmt: skip
 
 LIDAR_METHODS = ("crossings", "dda")
-# The faster method per JAX backend, as measured by `quicknav bench --lidar-method both` (full
-# observation consumed). cpu: crossings 1.4-2.2x faster than dda at grid 16-32, 16-64 beams (2-core
-# AMD EPYC VM). gpu: not measured yet (no GPU lent so far): crossings until a GPU run says otherwise.
+# The faster method per JAX backend, as measured by benchmarks/gpu_suite.py (stage env+lidar, whole
+# observation consumed, 4,096 envs). cpu: crossings, dda at 0.17-0.22x of its steps/s (grid 16 and
+# 32, 16 and 64 beams; 2-core Intel Xeon VM, benchmarks/results/gpu-suite-cpu-cpu.json). gpu: not
+# measured yet (no GPU lent so far): crossings until a GPU run of the suite says otherwise.
 FASTEST_LIDAR = {"cpu": "crossings", "gpu": "crossings", "tpu": "crossings"}
 
 
