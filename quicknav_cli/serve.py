@@ -64,7 +64,7 @@ def serve(
         if settings.redis_url
         else f"sqlite {settings.data_dir / 'jobs.db'}"
     )
-    console.print(f"QuickNav API on http://{settings.host}:{settings.port} (docs at /docs), store: {store},"
+    console.print(f"QuickNav API on http{'s' if settings.tls_cert else ''}://{settings.host}:{settings.port} (docs at /docs), store: {store},"
                   f" in-process workers: {settings.max_concurrent_jobs if settings.embedded_worker else 0}",
                   soft_wrap=True)  # fmt: skip
     rollout = announcer = None
@@ -75,14 +75,19 @@ def serve(
 
         rollout, announcer = start_rollout(settings, make_store(settings), settings.grpc_port,
                                            f"serve-{socket.gethostname()}-{os.getpid()}")  # fmt: skip
+    # HTTPS when QUICKNAV_TLS_CERT/_KEY are set (uvicorn terminates TLS)
+    tls = ({"ssl_certfile": str(settings.tls_cert), "ssl_keyfile": str(settings.tls_key)}
+           if settings.tls_cert else {})  # fmt: skip
     try:
         if api_workers > 1:
             # several processes: each builds its app from the same QUICKNAV_* settings
             os.environ["QUICKNAV_EMBEDDED_WORKER"] = "false" if not settings.embedded_worker else "true"
             uvicorn.run("service.api.main:create_app", factory=True, host=settings.host,
-                        port=settings.port, workers=api_workers, log_level="warning")  # fmt: skip
+                        port=settings.port, workers=api_workers, log_level="warning",
+                        **tls)  # fmt: skip
         else:
-            uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="info")
+            uvicorn.run(create_app(settings), host=settings.host, port=settings.port,
+                        log_level="info", **tls)  # fmt: skip
     finally:
         if announcer is not None:
             announcer.stop()

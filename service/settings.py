@@ -30,6 +30,14 @@ class Settings(BaseSettings):
     grpc_enabled: bool = Field(
         True, description="start the gRPC Rollout server in `quicknav serve`"
     )
+    grpc_tls_cert: Path | None = Field(
+        None, description="PEM certificate chain: the gRPC port speaks TLS (with grpc_tls_key)"
+    )
+    grpc_tls_key: Path | None = Field(None, description="PEM private key of grpc_tls_cert")
+    tls_cert: Path | None = Field(
+        None, description="PEM certificate chain: the HTTP API speaks HTTPS (with tls_key)"
+    )
+    tls_key: Path | None = Field(None, description="PEM private key of tls_cert")
     rollout_advertise: str | None = Field(
         None, description="host[:port] remote agents use to reach this process's Rollout server"
         " (default: this machine's host name and the bound port)",
@@ -77,6 +85,12 @@ class Settings(BaseSettings):
                 f"QUICKNAV_HEARTBEAT_S={self.heartbeat_s} must be below QUICKNAV_LEASE_S={self.lease_s}"
                 " (a lease must be renewed before it expires)"
             )
+        for cert, key, name in ((self.grpc_tls_cert, self.grpc_tls_key, "GRPC_TLS"),
+                                (self.tls_cert, self.tls_key, "TLS")):  # fmt: skip
+            if (cert is None) != (key is None):
+                raise ValueError(
+                    f"QUICKNAV_{name}_CERT and QUICKNAV_{name}_KEY go together: set both or neither"
+                )
         return self
 
     @property

@@ -110,18 +110,23 @@ class RolloutClient:
         timeout: float | None = None,
         max_message_mb: int = 256,
         channel: grpc.Channel | None = None,
+        tls: bool = False,
+        root_certificates: bytes | None = None,
     ):
+        """``tls=True`` (or ``root_certificates``, PEM bytes of the CA or a self-signed server
+        certificate) speaks TLS to a server started with QUICKNAV_GRPC_TLS_CERT/_KEY."""
         self.target = target
         self.timeout = timeout
         limit = max_message_mb * 2**20
         self._own_channel = channel is None
-        self._channel = channel or grpc.insecure_channel(
-            target,
-            options=[
-                ("grpc.max_receive_message_length", limit),
-                ("grpc.max_send_message_length", limit),
-            ],
-        )
+        options = [
+            ("grpc.max_receive_message_length", limit),
+            ("grpc.max_send_message_length", limit),
+        ]
+        if channel is None and (tls or root_certificates is not None):
+            creds = grpc.ssl_channel_credentials(root_certificates=root_certificates)
+            channel = grpc.secure_channel(target, creds, options=options)
+        self._channel = channel or grpc.insecure_channel(target, options=options)
         self._stub = pb_grpc.RolloutServiceStub(self._channel)
         self._outbox: queue.SimpleQueue = queue.SimpleQueue()
         self._responses = self._stub.Rollout(self._requests(), metadata=_metadata(token))

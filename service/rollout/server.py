@@ -15,10 +15,33 @@ from service.settings import Settings
 log = logging.getLogger("quicknav.rollout")
 
 
+ROLLOUT_SERVICE = "quicknav.v1.RolloutService"
+
+
+def server_credentials(settings: Settings) -> grpc.ServerCredentials | None:
+    """TLS for the gRPC port when QUICKNAV_GRPC_TLS_CERT and _KEY name a PEM certificate chain and
+    key (None: plaintext)."""
+    if not settings.grpc_tls_cert:
+        return None
+    try:
+        chain = settings.grpc_tls_cert.read_bytes()
+        key = settings.grpc_tls_key.read_bytes()  # validated as set together
+    except OSError as e:
+        raise OSError(f"cannot read the gRPC TLS files (QUICKNAV_GRPC_TLS_CERT/_KEY): {e}") from e
+    return grpc.ssl_server_credentials([(key, chain)])
+
+
 async def start_server(
     settings: Settings, host: str | None = None, port: int | None = None
 ) -> tuple[grpc.aio.Server, int, RolloutServicer]:
-    """A started grpc.aio server bound to host:port (port 0 picks a free one); returns the port."""
+    """A started grpc.aio server bound to host:port (port 0 picks a free one); returns the port.
+
+    Beside Rollout it serves the standard ``grpc.health.v1.Health`` (SERVING for "" and for the
+    Rollout service; NOT_SERVING once it stops) and server reflection, so `grpcurl` and load
+    balancers' probes work without the proto file."""
+    from grpc_health.v1 import health, health_pb2, health_pb2_grpc
+    from grpc_reflection.v1alpha import reflection
+
     limit = settings.grpc_max_message_mb * 2**20
     server = grpc.aio.server(
         options=[
@@ -29,12 +52,22 @@ async def start_server(
     )
     servicer = RolloutServicer(settings)
     pb_grpc.add_RolloutServiceServicer_to_server(servicer, server)
+    health_servicer = health.aio.HealthServicer()
+    health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
+    reflection.enable_server_reflection(
+        (ROLLOUT_SERVICE, health.SERVICE_NAME, reflection.SERVICE_NAME), server
+    )
     address = f"{host or settings.host}:{settings.grpc_port if port is None else port}"
-    bound = server.add_insecure_port(address)
+    creds = server_credentials(settings)
+    bound = (server.add_secure_port(address, creds) if creds is not None
+             else server.add_insecure_port(address))  # fmt: skip
     if bound == 0:
         raise OSError(f"cannot bind the gRPC Rollout server to {address} (QUICKNAV_GRPC_PORT)")
     await server.start()
-    log.info("gRPC Rollout server on %s", address)
+    for name in ("", ROLLOUT_SERVICE):
+        await health_servicer.set(name, health_pb2.HealthCheckResponse.SERVING)
+    server.quicknav_health = health_servicer  # stop() marks it NOT_SERVING first
+    log.info("gRPC Rollout server on %s (%s)", address, "TLS" if creds else "plaintext")
     return server, bound, servicer
 
 
@@ -90,6 +123,11 @@ class BackgroundServer:
     def stop(self, grace: float = 1.0) -> None:
         """Stop taking streams, give open ones ``grace`` seconds, then end the thread."""
         if self._server is not None and self._loop.is_running():
+            health = getattr(self._server, "quicknav_health", None)
+            if health is not None:  # probes see NOT_SERVING while open streams finish
+                asyncio.run_coroutine_threadsafe(
+                    health.enter_graceful_shutdown(), self._loop
+                ).result(5)
             asyncio.run_coroutine_threadsafe(self._server.stop(grace), self._loop).result(grace + 5)
             self._loop.call_soon_threadsafe(self._loop.stop)
         self._thread.join(grace + 5)
