@@ -156,7 +156,8 @@ def run_episodes(
     pos = np.concatenate([np.asarray(p[10]) for p in parts], axis=1)[:, :n]  # (T, N, 2)
     traj = np.concatenate([start_pos[None], pos], axis=0).swapaxes(0, 1)
     # the pictures' episodes: the first g of each batch, as far as the first g_total episodes
-    gif_parts = [p for b, p in enumerate(parts) if b * batch < g_total]
+    # (with no picture episodes, the first batch's empty slices keep the shapes)
+    gif_parts = [p for b, p in enumerate(parts) if b * batch < g_total] or parts[:1]
     take = lambda i, axis: np.concatenate([np.asarray(p[i]) for p in gif_parts], axis=axis)  # noqa: E731
     first = [np.concatenate([np.asarray(p[15][k]) for p in gif_parts]) for k in range(3)]
     gif = {

@@ -325,3 +325,18 @@ def test_store_guard__redis_errors_become_unavailable():
         store.counts()
     assert e.value.reason == "redis is unreachable" and not e.value.disk_full
     assert isinstance(e.value.__cause__, redis.ConnectionError)  # kept for the logs
+
+
+def test_eval__batched_runner_without_picture_episodes():
+    """gif_episodes=0 (what sweeps evaluate with): every batch runs, nothing to draw, no crash
+    (the batched runner once concatenated an empty list of picture batches)."""
+    from quicknav_core.eval.evaluate import run_episodes
+
+    cfg = resolve_eval({"policy": "random", "episodes": 6, "env": {
+        "grid_size": 8, "lidar_beams": 8, "max_steps": 20, "train_rooms": 16, "test_rooms": 8}})  # fmt: skip
+    cfg = cfg.model_copy(update={"gif_episodes": 0})
+    from quicknav_core.eval.scripted import RandomAgent
+
+    env, params = cfg.env.build("test")
+    ep = run_episodes(env, params, RandomAgent(), cfg)
+    assert ep.success.shape == (6,) and ep.gif["theta"].shape[0] == 0
