@@ -3,16 +3,21 @@
 from __future__ import annotations
 
 from contextlib import asynccontextmanager
+from pathlib import Path
 
 import anyio
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.openapi.docs import get_swagger_ui_html
+from fastapi.responses import HTMLResponse, JSONResponse
+from fastapi.staticfiles import StaticFiles
 
 from service.api.middleware import BodyLimit
 from service.api.routes import artifacts, events, jobs, ops
 from service.jobs.models import JobStore, StoreUnavailable
 from service.settings import Settings, get_settings, make_store
+
+STATIC_DIR = Path(__file__).resolve().parent / "static"
 
 
 def create_app(
@@ -37,8 +42,21 @@ def create_app(
         if app.state.workers:
             await anyio.to_thread.run_sync(app.state.workers.stop)
 
-    app = FastAPI(title="QuickNav", version="0.1.0", lifespan=lifespan,
+    # /docs is served from files inside the package (Swagger UI's own distribution, Apache-2.0):
+    # FastAPI's default page loads it from a CDN and is blank without internet
+    app = FastAPI(title="QuickNav", version="0.1.0", lifespan=lifespan, docs_url=None,
+                  redoc_url=None,
                   description="Submit train, sweep and eval jobs; follow their progress; fetch results.")  # fmt: skip
+    app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+
+    @app.get("/docs", include_in_schema=False)
+    async def docs() -> HTMLResponse:
+        return get_swagger_ui_html(
+            openapi_url=app.openapi_url, title="QuickNav API",
+            swagger_js_url="/static/swagger-ui/swagger-ui-bundle.js",
+            swagger_css_url="/static/swagger-ui/swagger-ui.css",
+            swagger_favicon_url="/static/swagger-ui/favicon-32x32.png",
+        )  # fmt: skip
     app.state.settings = settings
     app.state.store = store
     app.state.workers = []
