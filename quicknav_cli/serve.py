@@ -82,6 +82,11 @@ def serve(
         if api_workers > 1:
             # several processes: each builds its app from the same QUICKNAV_* settings
             os.environ["QUICKNAV_EMBEDDED_WORKER"] = "false" if not settings.embedded_worker else "true"
+            if not os.environ.get("PROMETHEUS_MULTIPROC_DIR"):
+                # request metrics of every API process, summed on any one's /metrics
+                import tempfile
+
+                os.environ["PROMETHEUS_MULTIPROC_DIR"] = tempfile.mkdtemp(prefix="quicknav-prom-")
             uvicorn.run("service.api.main:create_app", factory=True, host=settings.host,
                         port=settings.port, workers=api_workers, log_level="warning",
                         **tls)  # fmt: skip

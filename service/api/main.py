@@ -12,6 +12,7 @@ from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import HTMLResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
 
+from service.api.metrics import RequestMetrics
 from service.api.middleware import BodyLimit
 from service.api.routes import artifacts, events, jobs, ops
 from service.jobs.models import JobStore, StoreUnavailable
@@ -62,6 +63,7 @@ def create_app(
     app.state.workers = []
 
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
+    app.add_middleware(RequestMetrics)  # outermost: it sees every answer, 413s included
 
     @app.exception_handler(StoreUnavailable)
     async def store_unavailable(request: Request, exc: StoreUnavailable):

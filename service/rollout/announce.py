@@ -56,6 +56,7 @@ class EndpointAnnouncer:
             self._device = device_summary()
         return {"worker": self.name, "address": self.address, "pid": os.getpid(), **self._device,
                 "sessions": getattr(self.servicer, "active_sessions", 0),
+                "env_steps_served": getattr(self.servicer, "env_steps_served", 0),
                 "max_sessions": self.max_sessions}  # fmt: skip
 
     def announce_once(self) -> bool:

@@ -135,6 +135,7 @@ class RolloutServicer(pb_grpc.RolloutServiceServicer):
             max_workers=min(32, settings.rollout_max_sessions + 2), thread_name_prefix="rollout"
         )
         self.active_sessions = 0
+        self.env_steps_served = 0  # env steps (steps x envs) over every stream, for /metrics
         self._handlers = {
             "start": self._start,
             "step": self._step,
@@ -313,6 +314,7 @@ class RolloutServicer(pb_grpc.RolloutServiceServicer):
         else:
             r = await self._run(env.step, actions)
         session.steps += 1
+        self.env_steps_served += env.num_envs
         session.episodes += int(r.done_indices.size)
         await context.write(
             pb.ServerMessage(

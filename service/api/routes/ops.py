@@ -11,7 +11,7 @@ from fastapi.responses import JSONResponse, PlainTextResponse, Response
 
 from quicknav_core.config.presets import preset_summaries
 from service.api.deps import SettingsDep, StoreDep, require_token
-from service.jobs.models import JobStatus, StoreUnavailable
+from service.jobs.models import StoreUnavailable
 
 router = APIRouter(tags=["service"])
 
@@ -71,20 +71,10 @@ def presets() -> dict:
 
 
 @router.get("/metrics", response_class=PlainTextResponse)
-def prometheus(request: Request, store: StoreDep) -> str:
-    """Job counts, queue depth, workers and training throughput, in Prometheus' text format."""
-    counts = store.counts()
-    running, _ = store.list(status=JobStatus.running, limit=500)
-    steps = sum(float(j.metrics.get("steps_per_s", 0.0) or 0.0) for j in running)
+def prometheus(request: Request, store: StoreDep, settings: SettingsDep) -> Response:
+    """Prometheus metrics (prometheus-client): HTTP requests and latencies per route, jobs by
+    status and kind, queue depth, heartbeats, job durations, env steps/s, gRPC Rollout streams."""
+    from service.api.metrics import CONTENT_TYPE_LATEST, render
+
     workers = getattr(request.app.state, "workers", [])
-    lines = ["# HELP quicknav_jobs Jobs by status.", "# TYPE quicknav_jobs gauge"]
-    lines += [f'quicknav_jobs{{status="{s}"}} {n}' for s, n in counts.items()]
-    lines += ["# HELP quicknav_queue_depth Jobs waiting for a worker.", "# TYPE quicknav_queue_depth gauge",
-              f"quicknav_queue_depth {counts.get('queued', 0)}",
-              "# HELP quicknav_busy_workers Jobs being run by a worker.", "# TYPE quicknav_busy_workers gauge",
-              f"quicknav_busy_workers {counts.get('running', 0)}",
-              "# HELP quicknav_embedded_workers In-process workers of this API process.",
-              "# TYPE quicknav_embedded_workers gauge", f"quicknav_embedded_workers {len(workers)}",
-              "# HELP quicknav_env_steps_per_second Training throughput of running jobs.",
-              "# TYPE quicknav_env_steps_per_second gauge", f"quicknav_env_steps_per_second {steps:.1f}"]  # fmt: skip
-    return "\n".join(lines) + "\n"
+    return Response(render(store, settings, len(workers)), media_type=CONTENT_TYPE_LATEST)
