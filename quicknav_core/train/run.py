@@ -203,8 +203,48 @@ def train_run(
         chunk = 0
     chunks = math.ceil(trainer.num_updates / trainer.updates_per_chunk)  # without time bounds
     total = trainer.total_env_steps
-    stopped = False
     done = trainer.updates_done(state)
+    board = TensorBoardLog(run_dir)
+    try:
+        chunk, state, stopped = _chunks(trainer, state, run_dir, chunk, chunks, total, done, board,
+                                        callback, checkpoint_every, max_chunk_s, interrupt)  # fmt: skip
+    finally:
+        board.close()
+    plot_learning_curve(run_dir)
+    return {
+        "run_dir": str(run_dir), "chunks_done": chunk, "chunks": max(chunks, chunk),
+        "env_steps": trainer.env_steps(state), "total_steps": total, "stopped": stopped,
+        "final": read_metrics(run_dir)[-1] if chunk else {},
+    }  # fmt: skip
+
+
+class TensorBoardLog:
+    """TensorBoard event files in the run folder (tensorboardX), one scalar per chunk metric
+    against env steps, flushed every chunk: `tensorboard --logdir <runs or data/artifacts>` shows
+    every run, live."""
+
+    def __init__(self, run_dir: Path):
+        from tensorboardX import SummaryWriter
+
+        self.writer = SummaryWriter(logdir=str(run_dir), flush_secs=3600)
+
+    def add(self, record: dict[str, Any]) -> None:
+        step = int(record["env_steps"])
+        for name, value in record.items():
+            if name in ("chunk", "env_steps", "chunks", "total_steps"):
+                continue
+            if isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value):
+                self.writer.add_scalar(f"train/{name}", float(value), step)
+        self.writer.flush()
+
+    def close(self) -> None:
+        self.writer.close()
+
+
+def _chunks(trainer, state, run_dir, chunk, chunks, total, done, board, callback, checkpoint_every,
+            max_chunk_s, interrupt):  # fmt: skip
+    """The chunk loop of ``train_run``: returns (chunks done, state, stopped)."""
+    stopped = False
     while done < trainer.num_updates:
         t0 = time.perf_counter()
         steps0 = trainer.env_steps(state)
@@ -227,6 +267,7 @@ def train_run(
                              (steps - steps0) / max(wall, 1e-9), metrics)  # fmt: skip
         with open(run_dir / METRICS_FILE, "a") as f:
             f.write(json.dumps(result.record()) + "\n")
+        board.add(result.record())
         asked = bool(callback(result)) if callback else False
         stop = interrupted or asked
         if stop or done >= trainer.num_updates or chunk % checkpoint_every == 0:
@@ -234,12 +275,7 @@ def train_run(
         if stop:
             stopped = True
             break
-    plot_learning_curve(run_dir)
-    return {
-        "run_dir": str(run_dir), "chunks_done": chunk, "chunks": max(chunks, chunk),
-        "env_steps": trainer.env_steps(state), "total_steps": total, "stopped": stopped,
-        "final": read_metrics(run_dir)[-1] if chunk else {},
-    }  # fmt: skip
+    return chunk, state, stopped
 
 
 def plot_learning_curve(run_dir: Path) -> Path | None:

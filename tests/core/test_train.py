@@ -1,6 +1,7 @@
 """Trainers: the recurrent-PPO invariant, every algorithm x network trains, learning, checkpoints."""
 
 import json
+import math
 
 import jax
 import jax.numpy as jnp
@@ -174,5 +175,40 @@ def test_cli_train__writes_run_folder_and_resumes(tmp_path):
         assert (run / name).exists(), name
     assert json.loads((run / "config.json").read_text())["env"]["grid_size"] == 8
     assert len(read_metrics(run)) == 2
+    # TensorBoard event files beside metrics.jsonl: the same figures at the same env steps
+    # (each finite figure of every chunk; NaN, e.g. success before any episode ended, is left out)
+    board = tensorboard_scalars(run)
+    expected: dict[str, list] = {}
+    for r in read_metrics(run):
+        for k, v in r.items():
+            if k not in ("chunk", "env_steps") and math.isfinite(v):
+                expected.setdefault(f"train/{k}", []).append((r["env_steps"], v))
+    assert {"train/steps_per_s", "train/episodes"} <= set(expected)
+    assert board.keys() == expected.keys()
+    for tag, points in expected.items():
+        assert [s for s, _ in board[tag]] == [s for s, _ in points], tag
+        assert [v for _, v in board[tag]] == pytest.approx([v for _, v in points], rel=1e-6), tag
     result = CliRunner().invoke(app, ["train", "--resume", str(run)])
     assert result.exit_code == 0, result.output
+
+
+def tensorboard_scalars(folder) -> dict[str, list[tuple[int, float]]]:
+    """Scalars of the TensorBoard event files in ``folder``, read as TensorBoard does: TFRecord
+    frames (length, its CRC, the serialised Event, its CRC) of ``Event`` protos."""
+    import struct
+
+    from tensorboardX.proto.event_pb2 import Event
+
+    out: dict[str, list[tuple[int, float]]] = {}
+    files = sorted(folder.glob("events.out.tfevents.*"))
+    assert files, "no event file"
+    for path in files:
+        data = path.read_bytes()
+        at = 0
+        while at < len(data):
+            (length,) = struct.unpack("<Q", data[at : at + 8])
+            event = Event.FromString(data[at + 12 : at + 12 + length])
+            at += 12 + length + 4
+            for v in event.summary.value:
+                out.setdefault(v.tag, []).append((event.step, v.simple_value))
+    return out
