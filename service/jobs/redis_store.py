@@ -201,6 +201,11 @@ class RedisJobStore:
             now = time.time()
 
             def start(job: Job, pipe, reclaimed=reclaimed, now=now):
+                if (reclaimed and job.status == JobStatus.running and job.lease_until is not None
+                        and job.lease_until > now):  # fmt: skip
+                    # idle entry, live lease (its worker has a longer lease_s than this one):
+                    # not orphaned; its next heartbeat claims the entry back
+                    return "alive"
                 if job.status == JobStatus.queued or (
                     reclaimed and job.status == JobStatus.running
                 ):
@@ -236,6 +241,8 @@ class RedisJobStore:
             if outcome == "run":
                 self.r.set(self._k("entry", job_id), entry_id)
                 return self._read(job_id)
+            if outcome == "alive":
+                continue  # its idle time was just reset: the next look finds other entries
             self._drop_entry(entry_id)
             if outcome in ("failed", "cancelled"):
                 job = self._read(job_id)

@@ -136,6 +136,15 @@ def test_an_orphaned_job_is_taken_before_queued_ones(store):
     assert store.claim("w3", lease_s=0.2).id == b.id
 
 
+def test_a_live_lease_is_not_taken_by_a_worker_with_a_shorter_lease(store):
+    a, _ = store.submit("train", {}, {})
+    store.claim("slow-beat", lease_s=30)  # a worker configured with a long lease
+    time.sleep(0.35)
+    assert store.claim("quick", lease_s=0.2) is None  # its lease runs for 29 s more: not orphaned
+    assert store.heartbeat(a.id, "slow-beat", 30)
+    assert store.get(a.id).worker == "slow-beat" and store.get(a.id).attempts == 1
+
+
 def test_delete_only_finished(store):
     a, _ = store.submit("train", {}, {})
     with pytest.raises(JobStateError):
