@@ -6,6 +6,7 @@ auto-reset, compiled once per (env config, batch size) and shared by every holde
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from typing import Any
 
@@ -20,6 +21,8 @@ __all__ = ["BatchedEnv", "StepResult", "batched_step", "env_and_params", "step_k
 
 _COMPILED: dict[Any, tuple[Any, Any]] = {}
 _PARAMS: dict[Any, Any] = {}
+_BUILDING: dict[Any, threading.Lock] = {}  # one lock per (config, split) being built
+_BUILDING_GUARD = threading.Lock()
 
 
 @dataclass
@@ -102,12 +105,21 @@ def _compiled(env, num_envs: int, sharding):
 def env_and_params(config: EnvConfig, split: Split):
     """The env and its params for a config and split (room banks built once per config)."""
     key = (config, split)
-    if key not in _PARAMS:
-        if len(_PARAMS) >= 16:  # many distinct configs from remote agents must not grow memory
-            _PARAMS.pop(next(iter(_PARAMS)))
-        # final observations are part of the protocol, whatever the config says
-        _PARAMS[key] = config.model_copy(update={"final_obs": True}).build(split)
-    return _PARAMS[key]
+    if key in _PARAMS:
+        return _PARAMS[key]
+    # streams that start the same config at once wait for one build instead of each carving
+    with _BUILDING_GUARD:
+        lock = _BUILDING.setdefault(key, threading.Lock())
+    with lock:
+        if key not in _PARAMS:
+            if len(_PARAMS) >= 16:  # many distinct configs from remote agents must not grow memory
+                _PARAMS.pop(next(iter(_PARAMS)), None)
+            # final observations are part of the protocol, whatever the config says
+            _PARAMS[key] = config.model_copy(update={"final_obs": True}).build(split)
+        params = _PARAMS[key]
+    with _BUILDING_GUARD:
+        _BUILDING.pop(key, None)
+    return params
 
 
 @jax.jit

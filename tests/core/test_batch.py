@@ -113,3 +113,31 @@ def test_gather_rows__matches_numpy_indexing_with_few_compiled_shapes():
         np.testing.assert_array_equal(got, np.asarray(x)[idx])
     # one compiled gather per power of two from 8 up, not one per count
     assert _take_rows._cache_size() <= 7
+
+
+def test_env_and_params__concurrent_starts_of_one_config_build_it_once(monkeypatch):
+    """Two rollout streams starting the same new config at once: one carves, the other waits."""
+    import threading
+    import time
+
+    from quicknav_core.config import EnvConfig
+    from quicknav_core.env import batch
+
+    cfg = EnvConfig(grid_size=8, lidar_beams=4, train_rooms=8, test_rooms=4, room_seed=424242)
+    calls = []
+    real_build = EnvConfig.build
+
+    def slow_build(self, split="train"):
+        calls.append(split)
+        time.sleep(0.3)  # a build long enough for the other thread to arrive meanwhile
+        return real_build(self, split)
+
+    monkeypatch.setattr(EnvConfig, "build", slow_build)
+    out = []
+    threads = [threading.Thread(target=lambda: out.append(batch.env_and_params(cfg, "train")))
+               for _ in range(3)]  # fmt: skip
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(60)
+    assert calls == ["train"] and len(out) == 3 and all(o is out[0] for o in out)
