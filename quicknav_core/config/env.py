@@ -27,7 +27,10 @@ class RewardConfig(StrictModel):
     r_t = -step_penalty - 1[collision]*collision_penalty - min(C_t, cycle_cap)*cycle_penalty
           + progress_term + 1[goal reached]*goal_reward + 1[new cell]*exploration_reward
     with progress_term = sign(d_{t-1} - d_t) * progress_reward (``progress="sign"``) or
-    progress_reward * (d_{t-1} - d_t) / (max_wheel_speed * dt) (``progress="linear"``).
+    progress_reward * (d_{t-1} - d_t) / (max_wheel_speed * dt) (``progress="linear"``) or
+    progress_reward * (d_{t-1} - potential_gamma * d'_t) / (max_wheel_speed * dt) with d'_t = 0 at
+    the goal (``progress="potential"``: potential-based shaping with Φ = -distance, which leaves the
+    optimal policy that of the sparse goal reward: circling near the goal earns nothing).
     """
 
     step_penalty: float = Field(
@@ -55,8 +58,14 @@ class RewardConfig(StrictModel):
         description="λe, paid on entering a cell not yet visited this episode (0 = the paper's formula)",
         json_schema_extra=TRACED,
     )
-    progress: Literal["sign", "linear"] = Field(
-        "sign", description="shape of the progress term", json_schema_extra=TRACED
+    progress: Literal["sign", "linear", "potential"] = Field(
+        "sign", description="shape of the progress term: the paper's sign, a scaled distance"
+        " difference, or potential-based shaping (its optimal policy is the unshaped one's)",
+        json_schema_extra=TRACED,
+    )
+    potential_gamma: float = Field(
+        0.99, ge=0.0, le=1.0, description="γ of the potential shaping (use the trainer's discount)",
+        json_schema_extra=TRACED,
     )
 
 

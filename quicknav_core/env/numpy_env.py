@@ -255,6 +255,9 @@ class QuickNavNumpyEnv(gym.Env):
         r = c.reward
         if r.progress == "linear":
             progress = (dist_prev - dist) / (vmax * dt)
+        elif r.progress == "potential":
+            after = f32(0.0) if goal_reached else dist
+            progress = (dist_prev - f32(r.potential_gamma) * after) / f32(vmax * dt)
         else:
             progress = np.sign(dist_prev - dist)
         terms = {

@@ -10,6 +10,8 @@ import numpy as np
 
 from quicknav_core.env.types import EnvParams
 
+PROGRESS_MODES = ("sign", "linear", "potential")
+
 
 def reward_numbers(reward: Any) -> dict[str, np.ndarray]:
     """The ``EnvParams`` fields of a ``RewardConfig``: one place maps config to traced numbers.
@@ -26,7 +28,8 @@ def reward_numbers(reward: Any) -> dict[str, np.ndarray]:
         "goal_reward": f32(reward.goal_reward),
         "cycle_cap": np.int32(reward.cycle_cap),
         "exploration_reward": f32(reward.exploration_reward),
-        "progress_linear": np.bool_(reward.progress == "linear"),
+        "progress_mode": np.int32(PROGRESS_MODES.index(reward.progress)),
+        "potential_gamma": f32(reward.potential_gamma),
     }
 
 
@@ -43,7 +46,14 @@ def reward_terms(
     step_size = params.max_wheel_speed * params.dt
     progress_sign = jnp.sign(dist_prev - dist)
     progress_linear = (dist_prev - dist) / step_size
-    progress = jnp.where(params.progress_linear, progress_linear, progress_sign)
+    # potential-based shaping (Ng, Harada & Russell 1999): F = γ·Φ(s') − Φ(s), Φ = −distance in
+    # steps, Φ = 0 once the goal is reached (the episode ends there)
+    dist_after = jnp.where(goal_reached, 0.0, dist)
+    progress_potential = (dist_prev - params.potential_gamma * dist_after) / step_size
+    progress = jnp.select(
+        [params.progress_mode == 1, params.progress_mode == 2],
+        [progress_linear, progress_potential], progress_sign,
+    )  # fmt: skip
     return {
         "step": -jnp.asarray(params.step_penalty, jnp.float32),
         "collision": -collided.astype(jnp.float32) * params.collision_penalty,

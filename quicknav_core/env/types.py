@@ -71,4 +71,5 @@ class EnvParams:
     goal_reward: jax.Array | float = 50.0
     cycle_cap: jax.Array | int = 10
     exploration_reward: jax.Array | float = 0.0
-    progress_linear: jax.Array | bool = False  # False: sign(d_prev - d), True: scaled difference
+    progress_mode: jax.Array | int = 0  # 0: sign(d_prev - d), 1: scaled difference, 2: potential
+    potential_gamma: jax.Array | float = 0.99  # γ of the potential-based shaping (mode 2)

@@ -39,8 +39,10 @@ def _rollout_jax(env, params, n_envs, n_steps, actions, seed):
         EnvConfig(train_rooms=64),
         EnvConfig(grid_size=8, lidar_beams=9, lidar_fov_deg=180.0, observe_goal=False,
                   train_rooms=64, reward={"cycle_penalty": 0.3, "progress": "linear", "exploration_reward": 0.2}),
+        EnvConfig(grid_size=8, lidar_beams=8, train_rooms=64, max_steps=60,
+                  reward={"progress": "potential", "potential_gamma": 0.95}),
     ],
-    ids=["default", "grid8-fov180-linear-cycles"],
+    ids=["default", "grid8-fov180-linear-cycles", "grid8-potential"],
 )  # fmt: skip
 def test_parity__jax_env_matches_numpy_twin(config):
     env, params = config.build("train")

@@ -141,10 +141,11 @@ def test_traced_fields__are_exactly_what_batched_training_varies():
     assert hyper == traced_fields(PPOConfig), "PPOHyper must hold every traced PPO number"
     numbers = reward_numbers(RewardConfig())
     assert set(numbers) <= {f.name for f in dataclasses.fields(EnvParams)}
-    renamed = {"progress": "progress_linear"}
+    renamed = {"progress": "progress_mode"}
     assert {renamed.get(f, f) for f in traced_fields(RewardConfig)} == set(numbers)
     # every traced number really changes the params: no field is silently dropped
     changed = reward_numbers(RewardConfig(step_penalty=0.3, collision_penalty=1, cycle_penalty=2,
                                           progress_reward=0.5, goal_reward=5, cycle_cap=3,
-                                          exploration_reward=1, progress="linear"))  # fmt: skip
+                                          exploration_reward=1, progress="linear",
+                                          potential_gamma=0.9))  # fmt: skip
     assert all(changed[k] != numbers[k] for k in numbers)

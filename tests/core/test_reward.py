@@ -58,6 +58,49 @@ def test_reward__linear_progress_is_scaled_distance(hand_env):
     assert r_half == pytest.approx(-0.1 + 1.0, abs=1e-4)
 
 
+def test_reward__potential_shaping_is_gamma_discounted_distance_difference(hand_env):
+    run = hand_env(reward={"progress": "potential", "potential_gamma": 0.9})
+    # 0.1 m closer: F = (d_prev - γ d) / 0.1 = (3.0 - 0.9 * 2.9) / 0.1
+    ((r, *_),) = run([3.5, 4.5], 0.0, [6.5, 4.5], [FWD])
+    assert r == pytest.approx(-0.1 + (3.0 - 0.9 * 2.9) / 0.1, abs=1e-3)
+    # reaching the goal: Φ = 0 there, so F = d_prev / 0.1, plus the goal reward
+    ((r_goal, done, *_),) = run([6.5 - 0.35, 4.5], 0.0, [6.5, 4.5], [FWD])
+    assert done and r_goal == pytest.approx(-0.1 + 0.35 / 0.1 + 50.0, abs=1e-3)
+
+
+def test_reward__circling_near_the_goal_outearns_reaching_it_only_under_the_papers_reward():
+    """The farming TD3 found (issue 18): approach in small steps (each +1 under the sign reward),
+    retreat in one big step (-1), never arrive. Discounted returns over 300 steps, γ = 0.99,
+    against the oracle's straight 7-step drive from 1 m to the 0.3 m goal disc."""
+    from types import SimpleNamespace
+
+    from quicknav_core.config.env import RewardConfig
+    from quicknav_core.env.reward import reward_numbers, reward_terms, total_reward
+
+    gamma = 0.99
+
+    def discounted_return(dists, reward):  # dists[0] is the start, one step per later entry
+        params = SimpleNamespace(max_wheel_speed=1.0, dt=0.1, **reward_numbers(reward))
+        total = 0.0
+        for t in range(1, len(dists)):
+            reached = dists[t] <= 0.3
+            terms = reward_terms(jnp.bool_(False), jnp.int32(0), jnp.float32(dists[t - 1]),
+                                 jnp.float32(dists[t]), jnp.bool_(reached), params)  # fmt: skip
+            total += gamma ** (t - 1) * float(total_reward(terms))
+            if reached:
+                break
+        return total
+
+    circle = [1.0]
+    for _ in range(30):  # 9 steps in by 1 cm, 1 step out by 9 cm: 300 steps, never at the goal
+        circle += [circle[-1] - 0.01 * k for k in range(1, 10)] + [1.0]
+    oracle = [1.0 - 0.1 * k for k in range(8)]  # 1.0 ... 0.3: at the goal on step 7
+    paper = RewardConfig()
+    shaped = RewardConfig(progress="potential", potential_gamma=gamma)
+    assert discounted_return(circle, paper) > discounted_return(oracle, paper) + 5
+    assert discounted_return(oracle, shaped) > discounted_return(circle, shaped) + 40
+
+
 def test_reward__collision_penalty(hand_env):
     # facing the left wall (x = 1), 0.16 m from it: the forward move would overlap the wall
     ((r, done, info, s),) = hand_env()([1.16, 4.5], np.pi, [6.5, 4.5], [FWD])
