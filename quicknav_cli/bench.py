@@ -83,8 +83,10 @@ def bench_env(
         fail(f"--grid {bad[0]}: allowed range 4..128")
     if batch and min(batch) < 1:
         fail(f"--batch {min(batch)}: allowed range >= 1")
-    if lidar_method not in ("auto", "crossings", "dda"):
-        fail(f"--lidar-method {lidar_method}: allowed auto, crossings, dda")
+    from quicknav_core.env.lidar import LIDAR_METHODS
+
+    if lidar_method not in ("auto", *LIDAR_METHODS):
+        fail(f"--lidar-method {lidar_method}: allowed " + ", ".join(("auto", *LIDAR_METHODS)))
     import jax
 
     batches = batch or list(DEFAULT_BATCHES)

@@ -73,8 +73,10 @@ def serve(
 
         from service.settings import make_store
 
+        # the API process starts JAX only when a rollout stream needs it
         rollout, announcer = start_rollout(settings, make_store(settings), settings.grpc_port,
-                                           f"serve-{socket.gethostname()}-{os.getpid()}")  # fmt: skip
+                                           f"serve-{socket.gethostname()}-{os.getpid()}",
+                                           probe_device=False)  # fmt: skip
     # HTTPS when QUICKNAV_TLS_CERT/_KEY are set (uvicorn terminates TLS)
     tls = ({"ssl_certfile": str(settings.tls_cert), "ssl_keyfile": str(settings.tls_key)}
            if settings.tls_cert else {})  # fmt: skip
@@ -187,9 +189,8 @@ def worker(
             rollout.stop()
 
 
-def start_rollout(settings, store, port: int, name: str):
+def start_rollout(settings, store, port: int, name: str, probe_device: bool = True):
     """The gRPC Rollout server of this process, announced in the store for the API to list."""
-    enable_compilation_cache()
     from service.rollout.announce import EndpointAnnouncer, advertised_address
     from service.rollout.server import BackgroundServer
 
@@ -200,7 +201,8 @@ def start_rollout(settings, store, port: int, name: str):
     address = advertised_address(settings.rollout_advertise, rollout.port, settings.host)
     announcer = EndpointAnnouncer(store, name, address, rollout.servicer,
                                   interval_s=settings.heartbeat_s,
-                                  max_sessions=settings.rollout_max_sessions).start()  # fmt: skip
+                                  max_sessions=settings.rollout_max_sessions,
+                                  probe_device=probe_device).start()  # fmt: skip
     console.print(f"gRPC Rollout on {settings.host}:{rollout.port}, announced as {address}",
                   soft_wrap=True)  # fmt: skip
     return rollout, announcer

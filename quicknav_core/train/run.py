@@ -204,12 +204,38 @@ def train_run(
     chunks = math.ceil(trainer.num_updates / trainer.updates_per_chunk)  # without time bounds
     total = trainer.total_env_steps
     done = trainer.updates_done(state)
-    board = TensorBoardLog(run_dir)
-    try:
-        chunk, state, stopped = _chunks(trainer, state, run_dir, chunk, chunks, total, done, board,
-                                        callback, checkpoint_every, max_chunk_s, interrupt)  # fmt: skip
-    finally:
-        board.close()
+    with TensorBoardLog(run_dir) as board:
+        stopped = False
+        while done < trainer.num_updates:
+            t0 = time.perf_counter()
+            steps0 = trainer.env_steps(state)
+            target = min(trainer.num_updates, done + trainer.updates_per_chunk)
+            units, interrupted = [], False
+            while done < target:
+                state, metrics = trainer.run_unit(state)
+                units.append(metrics)
+                done += trainer.updates_per_unit
+                if interrupt is not None and interrupt():
+                    interrupted = True
+                    break
+                if max_chunk_s is not None and time.perf_counter() - t0 >= max_chunk_s:
+                    break
+            state, metrics = trainer.finish_chunk(state, units)
+            wall = time.perf_counter() - t0
+            chunk += 1
+            steps = trainer.env_steps(state)
+            result = ChunkResult(chunk, max(chunks, chunk), steps, total, wall,
+                                 (steps - steps0) / max(wall, 1e-9), metrics)  # fmt: skip
+            with open(run_dir / METRICS_FILE, "a") as f:
+                f.write(json.dumps(result.record()) + "\n")
+            board.add(result.record())
+            asked = bool(callback(result)) if callback else False
+            stop = interrupted or asked
+            if stop or done >= trainer.num_updates or chunk % checkpoint_every == 0:
+                save_checkpoint(run_dir, trainer, state, chunk)
+            if stop:
+                stopped = True
+                break
     plot_learning_curve(run_dir)
     return {
         "run_dir": str(run_dir), "chunks_done": chunk, "chunks": max(chunks, chunk),
@@ -237,45 +263,11 @@ class TensorBoardLog:
                 self.writer.add_scalar(f"train/{name}", float(value), step)
         self.writer.flush()
 
-    def close(self) -> None:
+    def __enter__(self) -> TensorBoardLog:
+        return self
+
+    def __exit__(self, *exc) -> None:
         self.writer.close()
-
-
-def _chunks(trainer, state, run_dir, chunk, chunks, total, done, board, callback, checkpoint_every,
-            max_chunk_s, interrupt):  # fmt: skip
-    """The chunk loop of ``train_run``: returns (chunks done, state, stopped)."""
-    stopped = False
-    while done < trainer.num_updates:
-        t0 = time.perf_counter()
-        steps0 = trainer.env_steps(state)
-        target = min(trainer.num_updates, done + trainer.updates_per_chunk)
-        units, interrupted = [], False
-        while done < target:
-            state, metrics = trainer.run_unit(state)
-            units.append(metrics)
-            done += trainer.updates_per_unit
-            if interrupt is not None and interrupt():
-                interrupted = True
-                break
-            if max_chunk_s is not None and time.perf_counter() - t0 >= max_chunk_s:
-                break
-        state, metrics = trainer.finish_chunk(state, units)
-        wall = time.perf_counter() - t0
-        chunk += 1
-        steps = trainer.env_steps(state)
-        result = ChunkResult(chunk, max(chunks, chunk), steps, total, wall,
-                             (steps - steps0) / max(wall, 1e-9), metrics)  # fmt: skip
-        with open(run_dir / METRICS_FILE, "a") as f:
-            f.write(json.dumps(result.record()) + "\n")
-        board.add(result.record())
-        asked = bool(callback(result)) if callback else False
-        stop = interrupted or asked
-        if stop or done >= trainer.num_updates or chunk % checkpoint_every == 0:
-            save_checkpoint(run_dir, trainer, state, chunk)
-        if stop:
-            stopped = True
-            break
-    return chunk, state, stopped
 
 
 def plot_learning_curve(run_dir: Path) -> Path | None:

@@ -82,7 +82,8 @@ class StoreCollector(Collector):
         yield GaugeMetricFamily("quicknav_env_steps_per_second",
                                 "Training throughput of running jobs, summed.", value=steps)  # fmt: skip
         beat = GaugeMetricFamily("quicknav_worker_heartbeat_age_seconds",
-                                 "Seconds since the worker of a running job last renewed its lease.",
+                                 "Seconds since the worker of a running job last renewed its lease"
+                                 " (from the lease's end, taking this API's QUICKNAV_LEASE_S).",
                                  labels=["job", "worker"])  # fmt: skip
         for job in running:
             if job.lease_until is not None:

@@ -37,10 +37,16 @@ def advertised_address(configured: str | None, port: int, bound_host: str = "0.0
 
 class EndpointAnnouncer:
     """Renews ``{worker, address, device, sessions, max_sessions}`` every ``interval_s`` (TTL
-    three intervals) until ``stop()``, which withdraws it. Store outages are waited out."""
+    three intervals) until ``stop()``, which withdraws it. Store outages are waited out.
+
+    With ``probe_device`` (a worker, which uses its device anyway) the device is read at once;
+    otherwise (the API process of `quicknav serve`) only once a stream has used it, so announcing
+    never starts JAX, or takes GPU memory, in a process that may never step an env: until then
+    ``backend`` and ``device`` are None."""
 
     def __init__(self, store, name: str, address: str, servicer, interval_s: float,
-                 max_sessions: int):  # fmt: skip
+                 max_sessions: int, probe_device: bool = True):  # fmt: skip
+        self.probe_device = probe_device
         self.store = store
         self.name = name
         self.address = address
@@ -52,9 +58,12 @@ class EndpointAnnouncer:
         self._thread = threading.Thread(target=self._run, name="rollout-announce", daemon=True)
 
     def endpoint(self) -> dict[str, Any]:
-        if self._device is None:
+        used = (getattr(self.servicer, "active_sessions", 0) > 0
+                or getattr(self.servicer, "env_steps_served", 0) > 0)  # fmt: skip
+        if self._device is None and (self.probe_device or used):
             self._device = device_summary()
-        return {"worker": self.name, "address": self.address, "pid": os.getpid(), **self._device,
+        return {"worker": self.name, "address": self.address, "pid": os.getpid(),
+                **(self._device or {"backend": None, "device": None, "devices": 0}),
                 "sessions": getattr(self.servicer, "active_sessions", 0),
                 "env_steps_served": getattr(self.servicer, "env_steps_served", 0),
                 "max_sessions": self.max_sessions}  # fmt: skip

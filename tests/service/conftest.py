@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import os
 import socket
+import subprocess
+import sys
 import threading
 import time
 
@@ -14,6 +17,27 @@ from service.api.app import create_app
 from service.jobs.sqlite_store import SQLiteJobStore
 from service.settings import Settings
 from service.worker import Worker
+
+
+def quicknav_process(args: list[str], **env: str) -> subprocess.Popen:
+    """`quicknav ARGS` in a child process with QUICKNAV_* ``env`` (and no Redis from outside)."""
+    full = {**os.environ, **env}
+    full.pop("QUICKNAV_REDIS_URL", None)
+    return subprocess.Popen([sys.executable, "-m", "quicknav_cli", *args], env=full,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)  # fmt: skip
+
+
+def wait_until_up(url: str, proc: subprocess.Popen, verify=True, timeout: float = 60.0) -> None:
+    """Until ``url``/healthz answers 200; fails with the process's output if it exits first."""
+    deadline = time.time() + timeout
+    while True:
+        try:
+            if httpx.get(f"{url}/healthz", verify=verify, timeout=2).status_code == 200:
+                return
+        except httpx.HTTPError:
+            pass
+        assert proc.poll() is None and time.time() < deadline, proc.stdout.read()
+        time.sleep(0.2)
 
 
 def free_port() -> int:

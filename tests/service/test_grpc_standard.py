@@ -3,11 +3,8 @@ reflection (what `grpcurl list` uses), and TLS when a certificate is configured;
 
 from __future__ import annotations
 
-import os
 import ssl
 import subprocess
-import sys
-import time
 
 import grpc
 import httpx
@@ -21,7 +18,7 @@ from quicknav_client import RolloutClient
 
 from service.rollout.server import ROLLOUT_SERVICE, BackgroundServer
 from service.settings import Settings
-from tests.service.conftest import free_port
+from tests.service.conftest import free_port, quicknav_process, wait_until_up
 
 SMALL = {"grid_size": 8, "train_rooms": 16, "test_rooms": 8, "lidar_beams": 8}
 
@@ -74,27 +71,14 @@ def test_settings__tls_cert_and_key_go_together(tmp_path):
 def test_serve_with_tls__https_api_and_grpc_over_tls(tmp_path, self_signed):
     cert, key = self_signed
     http_port, grpc_port = free_port(), free_port()
-    env = {**os.environ, "QUICKNAV_DATA_DIR": str(tmp_path / "data"),
-           "QUICKNAV_TLS_CERT": str(cert), "QUICKNAV_TLS_KEY": str(key),
-           "QUICKNAV_GRPC_TLS_CERT": str(cert), "QUICKNAV_GRPC_TLS_KEY": str(key)}  # fmt: skip
-    env.pop("QUICKNAV_REDIS_URL", None)
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "quicknav_cli", "serve", "--no-worker", "--port", str(http_port),
-         "--grpc-port", str(grpc_port)],
-        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    proc = quicknav_process(
+        ["serve", "--no-worker", "--port", str(http_port), "--grpc-port", str(grpc_port)],
+        QUICKNAV_DATA_DIR=str(tmp_path / "data"), QUICKNAV_TLS_CERT=str(cert),
+        QUICKNAV_TLS_KEY=str(key), QUICKNAV_GRPC_TLS_CERT=str(cert), QUICKNAV_GRPC_TLS_KEY=str(key),
     )  # fmt: skip
     url = f"https://localhost:{http_port}"
-    trust = ssl.create_default_context(cafile=str(cert))
     try:
-        deadline = time.time() + 60
-        while True:
-            try:
-                if httpx.get(f"{url}/healthz", verify=trust, timeout=2).status_code == 200:
-                    break
-            except httpx.HTTPError:
-                pass
-            assert proc.poll() is None and time.time() < deadline, proc.stdout.read()
-            time.sleep(0.3)
+        wait_until_up(url, proc, verify=ssl.create_default_context(cafile=str(cert)))
         with pytest.raises(httpx.HTTPError):  # plain HTTP is not spoken on that port
             httpx.get(f"http://localhost:{http_port}/healthz", timeout=2)
         # gRPC over TLS, trusting the self-signed certificate

@@ -4,38 +4,21 @@ a rollout stream."""
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 import time
 
-import httpx
 import numpy as np
 from quicknav_client import QuickNavClient, RolloutClient
 
-from tests.service.conftest import free_port
+from tests.service.conftest import free_port, quicknav_process, wait_until_up
 
 
 def test_serve__http_grpc_and_a_supervised_worker_in_one_command(tmp_path):
     http_port, grpc_port = free_port(), free_port()
-    env = {**os.environ, "QUICKNAV_DATA_DIR": str(tmp_path / "data")}
-    env.pop("QUICKNAV_REDIS_URL", None)
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "quicknav_cli", "serve", "--port", str(http_port),
-         "--grpc-port", str(grpc_port)],
-        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-    )  # fmt: skip
+    proc = quicknav_process(["serve", "--port", str(http_port), "--grpc-port", str(grpc_port)],
+                            QUICKNAV_DATA_DIR=str(tmp_path / "data"))  # fmt: skip
     url = f"http://127.0.0.1:{http_port}"
     try:
-        deadline = time.time() + 60
-        while True:
-            try:
-                if httpx.get(f"{url}/healthz", timeout=1).status_code == 200:
-                    break
-            except httpx.HTTPError:
-                pass
-            assert proc.poll() is None and time.time() < deadline, proc.stdout.read()
-            time.sleep(0.2)
+        wait_until_up(url, proc)
         with QuickNavClient(url) as qn:
             job = qn.evaluate(policy="random", episodes=4, env={"grid_size": 8, "train_rooms": 16,
                                                                "test_rooms": 8, "max_steps": 20})  # fmt: skip
@@ -45,7 +28,10 @@ def test_serve__http_grpc_and_a_supervised_worker_in_one_command(tmp_path):
             # the all-in-one server lists its own Rollout endpoint
             listed = qn.rollout_endpoints()
             assert [e["address"] for e in listed] == [f"127.0.0.1:{grpc_port}"], listed
-            assert listed[0]["backend"] == "cpu" and listed[0]["max_sessions"] >= 1
+            assert listed[0]["max_sessions"] >= 1
+            # announcing did not start JAX in the API process (on a GPU it would take memory the
+            # worker processes need): the device is known once a stream has used it
+            assert listed[0]["backend"] is None
         with RolloutClient(listed[0]["address"]) as rc:
             started = rc.start(
                 num_envs=2, config={"grid_size": 8, "train_rooms": 16, "test_rooms": 8}
@@ -64,14 +50,10 @@ def test_worker__serves_rollout_on_its_device_and_the_api_lists_it(tmp_path):
 
     with LiveServer(tmp_path, grpc_enabled=False) as live, QuickNavClient(live.url) as qn:
         assert qn.rollout_endpoints() == []
-        env = {**os.environ, "QUICKNAV_DATA_DIR": str(live.settings.data_dir),
-               "QUICKNAV_HEARTBEAT_S": "1"}  # fmt: skip
-        env.pop("QUICKNAV_REDIS_URL", None)
         grpc_port = free_port()
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "quicknav_cli", "worker", "--grpc-port", str(grpc_port)],
-            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-        )  # fmt: skip
+        proc = quicknav_process(["worker", "--grpc-port", str(grpc_port)],
+                                QUICKNAV_DATA_DIR=str(live.settings.data_dir),
+                                QUICKNAV_HEARTBEAT_S="1")  # fmt: skip
         try:
             deadline = time.time() + 90
             while not (listed := qn.rollout_endpoints()):
