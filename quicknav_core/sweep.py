@@ -18,6 +18,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
 import time
 import traceback
 import warnings
@@ -145,6 +146,7 @@ def run_sweep(
                     trial.set_user_attr("traceback", traceback.format_exc()[-4000:])
                     study.tell(trial, state=optuna.trial.TrialState.FAIL)
             timings.append({"trials": len(members), "seconds": time.perf_counter() - t0})
+            write_trials(study, cfg, out_dir)
             if progress:
                 best = _best(study)
                 stop = progress({"finished": len(study.get_trials(deepcopy=False, states=finished_states)),
@@ -166,10 +168,40 @@ def _best(study) -> tuple[float | None, dict | None]:
         return None, None
 
 
+def write_trials(study, cfg: SweepConfig, out_dir: Path) -> dict[str, Any]:
+    """``trials.json``: the objective, its direction and every trial so far (number, state, value,
+    params, metrics, error, seconds), rewritten after each batch so a running sweep can be watched."""
+    rows = []
+    for t in study.get_trials(deepcopy=False):
+        seconds = ((t.datetime_complete - t.datetime_start).total_seconds()
+                   if t.datetime_complete and t.datetime_start else None)  # fmt: skip
+        value = t.value if t.value is not None and math.isfinite(t.value) else None
+        rows.append({"number": t.number, "state": t.state.name, "value": value, "params": t.params,
+                     "metrics": t.user_attrs.get("metrics"), "error": t.user_attrs.get("error"),
+                     "seconds": seconds})  # fmt: skip
+    out = {"objective": cfg.objective, "direction": cfg.resolved_direction, "trials": rows}
+    tmp = out_dir / "trials.json.tmp"
+    tmp.write_text(json.dumps(_finite(out), default=float, allow_nan=False))
+    os.replace(tmp, out_dir / "trials.json")
+    return out
+
+
+def _finite(value: Any) -> Any:
+    """NaN and infinities as null: browsers' JSON.parse rejects them."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(v) for v in value]
+    return value
+
+
 def write_outputs(study, cfg: SweepConfig, out_dir: Path) -> dict[str, Any]:
-    """best_params.json, best_config.json, trials.csv and the Optuna plots (PNG)."""
+    """best_params.json, best_config.json, trials.csv, trials.json and the Optuna plots (PNG)."""
     import optuna
 
+    write_trials(study, cfg, out_dir)
     trials = study.get_trials(deepcopy=False)
     with open(out_dir / "trials.csv", "w", newline="") as f:
         names = sorted({k for t in trials for k in t.params})

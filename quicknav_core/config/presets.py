@@ -169,8 +169,10 @@ def get_preset(name: str) -> TrainConfig:
 
 
 def preset_summaries() -> dict[str, dict[str, Any]]:
-    """Every preset's description, notes and config (what ``GET /presets`` and the CLI list)."""
-    return {
-        name: {k: p[k] for k in ("description", "notes", "config") if k in p}
-        for name, p in PRESETS.items()
-    }
+    """Every preset's description, notes, config (as written: what differs from the defaults) and
+    ``resolved`` (the whole TrainConfig it gives); what ``GET /presets`` and the CLI list."""
+    out = {}
+    for name, p in PRESETS.items():
+        out[name] = {k: p[k] for k in ("description", "notes", "config") if k in p}
+        out[name]["resolved"] = get_preset(name).model_dump(mode="json")
+    return out

@@ -253,11 +253,48 @@ def evaluate(
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
         (out_dir / "eval.json").write_text(json.dumps(result, indent=2))
+        if ep.gif["theta"].shape[0]:
+            (out_dir / "replay.json").write_text(json.dumps(replay_data(ep, env_config, agent.name)))
         if cfg.pictures:
             draw_trajectories(ep, env_config, out_dir / "trajectories.png", title=agent.name)
             if cfg.gif_episodes:
                 draw_gif(ep, env_config, out_dir / "episodes.gif", title=agent.name)
     return result, ep
+
+
+def replay_data(ep: Episodes, config: EnvConfig, agent_name: str) -> dict[str, Any]:
+    """The picture episodes step by step, for the browser's replay (``replay.json``): walls as
+    rows of '#'/'.' (row = y), poses and lidar ranges rounded to millimetres, hit codes."""
+    from quicknav_core.env.constants import HIT_GOAL, HIT_NONE, HIT_WALL, beam_angles
+
+    episodes = []
+    for i in range(ep.gif["theta"].shape[0]):
+        n = int(ep.steps[i]) + 1  # the start pose and one pose per step taken
+        walls = ep.walls[i]
+        episodes.append({
+            "index": i,
+            "success": bool(ep.success[i]),
+            "steps": int(ep.steps[i]),
+            "return": round(float(ep.returns[i]), 4),
+            "walls": ["".join("#" if w else "." for w in row) for row in walls],
+            "goal": [round(float(v), 4) for v in ep.goals[i]],
+            "x": np.round(ep.trajectories[i, :n, 0], 3).tolist(),
+            "y": np.round(ep.trajectories[i, :n, 1], 3).tolist(),
+            "theta": np.round(ep.gif["theta"][i, :n], 4).tolist(),
+            "ranges": np.round(ep.gif["lidar_ranges"][i, :n], 3).tolist(),
+            "hits": ep.gif["lidar_hits"][i, :n].astype(int).tolist(),
+        })  # fmt: skip
+    return {
+        "agent": agent_name,
+        "room_size": config.room_size,
+        "grid_size": config.grid_size,
+        "robot_radius": config.robot_radius,
+        "goal_radius": config.goal_radius,
+        "dt": config.dt,
+        "beam_angles": np.round(beam_angles(config.lidar_beams, config.lidar_fov_deg), 5).tolist(),
+        "hit_codes": {"none": HIT_NONE, "wall": HIT_WALL, "goal": HIT_GOAL},
+        "episodes": episodes,
+    }
 
 
 def make_agent(cfg: EvalConfig, run_dir: Path | str | None = None) -> tuple[Agent, EnvConfig]:

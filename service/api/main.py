@@ -17,6 +17,7 @@ from service.api.middleware import BodyLimit
 from service.api.routes import artifacts, events, jobs, ops
 from service.jobs.models import JobStore, StoreUnavailable
 from service.settings import Settings, get_settings, make_store
+from service.web import routes as web
 
 STATIC_DIR = Path(__file__).resolve().parent / "static"
 
@@ -49,6 +50,7 @@ def create_app(
                   redoc_url=None,
                   description="Submit train, sweep and eval jobs; follow their progress; fetch results.")  # fmt: skip
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+    app.mount("/web/static", StaticFiles(directory=web.STATIC_DIR), name="web-static")
 
     @app.get("/docs", include_in_schema=False)
     async def docs() -> HTMLResponse:
@@ -84,4 +86,6 @@ def create_app(
     app.include_router(events.router)
     app.include_router(artifacts.router)
     app.include_router(ops.router)
+    app.include_router(web.auth)
+    app.include_router(web.router)
     return app

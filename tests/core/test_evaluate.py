@@ -143,6 +143,32 @@ def test_random__rarely_succeeds_on_the_same_episodes(baselines):
     assert oracle["per_episode"]["reference_length"] == random["per_episode"]["reference_length"]
 
 
+def test_eval__replay_json_holds_the_picture_episodes_step_by_step(baselines, tmp_path):
+    from quicknav_core.env.numpy_env import cast_lidar_np
+
+    cfg, oracle, _ = baselines
+    result, ep = evaluate(cfg, OracleAgent(cfg.room_size, cfg.goal_radius),
+                          EvalConfig(episodes=100, seed=5, pictures=False), out_dir=tmp_path)  # fmt: skip
+    assert result["per_episode"] == oracle["per_episode"]
+    replay = json.loads((tmp_path / "replay.json").read_text())
+    assert len(replay["episodes"]) == 3 and replay["grid_size"] == cfg.grid_size
+    angles = np.asarray(replay["beam_angles"], np.float32)
+    for i, e in enumerate(replay["episodes"]):
+        n = oracle["per_episode"]["steps"][i] + 1
+        assert e["success"] == oracle["per_episode"]["success"][i] and len(e["x"]) == n
+        assert e["walls"] == ["".join("#" if w else "." for w in row) for row in ep.walls[i]]
+        np.testing.assert_allclose(np.c_[e["x"], e["y"]], ep.trajectories[i, :n], atol=6e-4)
+        # the lidar of every 7th frame, cast again by the NumPy twin from the stored pose
+        for t in range(0, n, 7):
+            ranges, hits = cast_lidar_np(
+                np.array([e["x"][t], e["y"][t]], np.float32), e["theta"][t],
+                np.asarray(e["goal"], np.float32), ep.walls[i], angles, cfg.cell_size,
+                cfg.lidar_max_range, cfg.goal_radius,
+            )  # fmt: skip
+            np.testing.assert_allclose(e["ranges"][t], ranges, atol=0.01)
+            assert (np.asarray(e["hits"][t]) == hits).mean() >= 0.9  # rounding may flip a grazing beam
+
+
 @pytest.mark.slow  # trains, then three CLI evaluations: ~50 s on 2 cores
 def test_eval__run_folder_twice_gives_identical_results(tmp_path):
     cfg = TrainConfig.model_validate({

@@ -61,6 +61,13 @@ def test_sweep__sqlite_completes_writes_outputs_and_resumes(tmp_path):
         ]
     )
     storage = f"sqlite:///{tmp_path / 'study.db'}"
+    # trials.json (what the browser's sweep page reads) agrees with the study itself
+    listed = json.loads((tmp_path / "trials.json").read_text())
+    assert listed["direction"] == "maximize" and listed["objective"] == "return"  # as tiny_sweep asks
+    study = optuna.load_study(study_name="quicknav", storage=storage)
+    assert [(t["number"], t["state"], t["value"], t["params"]) for t in listed["trials"]] == [
+        (t.number, t.state.name, t.value, t.params) for t in study.trials
+    ]
     before = {
         t.number: (t.params, t.value)
         for t in optuna.load_study(study_name="quicknav", storage=storage).trials

@@ -1,0 +1,1 @@
+"""The browser view served by the API: static pages that read the same REST routes as the SDK."""

@@ -1,0 +1,76 @@
+"""The browser view: one page (``/`` and ``/ui/...``) that reads the REST API from the browser, its
+static files, and the session that lets a browser carry the API token."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from fastapi import APIRouter, HTTPException, Request, Response
+from fastapi.responses import FileResponse
+from pydantic import BaseModel, Field
+
+from service.api.deps import SESSION_COOKIE, SettingsDep, session_digest, session_valid
+
+STATIC_DIR = Path(__file__).resolve().parent / "static"
+SESSION_MAX_AGE_S = 7 * 24 * 3600
+
+router = APIRouter(include_in_schema=False)
+auth = APIRouter(prefix="/auth", tags=["auth"])
+
+
+def _page() -> FileResponse:
+    # the shell holds no data (every number on it comes from the token-checked API), so it is
+    # served to anyone; no-cache so an upgraded server's page is picked up on reload
+    return FileResponse(STATIC_DIR / "index.html", headers={"Cache-Control": "no-cache"})
+
+
+@router.get("/")
+async def index() -> FileResponse:
+    return _page()
+
+
+@router.get("/ui/{path:path}")
+async def ui(path: str) -> FileResponse:
+    return _page()
+
+
+class SessionCreate(BaseModel):
+    token: str = Field(min_length=1, max_length=4096, description="the server's QUICKNAV_API_TOKEN")
+
+
+class SessionPublic(BaseModel):
+    token_required: bool = Field(description="whether the server has QUICKNAV_API_TOKEN set")
+    authenticated: bool = Field(description="whether this request may read jobs")
+
+
+@auth.get("/session", response_model=SessionPublic)
+async def read_session(request: Request, settings: SettingsDep) -> SessionPublic:
+    """Whether a token is needed and whether this browser's session cookie carries it."""
+    required = settings.api_token is not None
+    ok = not required or session_valid(settings, request.cookies.get(SESSION_COOKIE))
+    return SessionPublic(token_required=required, authenticated=ok)
+
+
+@auth.post("/session", response_model=SessionPublic)
+async def create_session(body: SessionCreate, request: Request, response: Response,
+                         settings: SettingsDep) -> SessionPublic:  # fmt: skip
+    """Check the token and set the browser's session cookie (HttpOnly, SameSite=Strict)."""
+    import hmac
+
+    token = settings.api_token
+    if token is None:
+        return SessionPublic(token_required=False, authenticated=True)
+    if not hmac.compare_digest(body.token.encode(), token.encode()):
+        raise HTTPException(401, "wrong token: give the server's QUICKNAV_API_TOKEN")
+    response.set_cookie(SESSION_COOKIE, session_digest(token), max_age=SESSION_MAX_AGE_S,
+                        httponly=True, samesite="strict", path="/",
+                        secure=request.url.scheme == "https")  # fmt: skip
+    return SessionPublic(token_required=True, authenticated=True)
+
+
+@auth.delete("/session", status_code=204)
+async def delete_session() -> Response:
+    """Forget the browser's session (sign out)."""
+    response = Response(status_code=204)
+    response.delete_cookie(SESSION_COOKIE, path="/", httponly=True, samesite="strict")
+    return response
