@@ -271,7 +271,7 @@ function historyChart() {
   const plot = new uPlot({
     width: 460, height: 240, legend: { show: true },
     scales: { x: { time: false } },
-    axes: [{ label: "trial" }, { label: "objective" }],
+    axes: [{ label: "trial", incrs: [1, 2, 5, 10, 20, 50, 100, 200, 500, 1000] }, { label: "objective" }],
     series: [{ label: "trial" },
       { label: "value", stroke: "#1f77b4", width: 0, points: { show: true, size: 7, fill: "#1f77b4" } },
       { label: "best so far", stroke: "#d62728", width: 2, points: { show: false } }],
@@ -354,7 +354,7 @@ function eventLog(job, sec) {
     const { type, time, metrics, ...rest } = data;
     const when = time ? new Date(time * 1000).toLocaleTimeString() : "";
     const fields = { ...rest, ...(metrics || {}) }; // a progress event's metrics, flattened
-    const text = Object.entries(fields)
+    const text = Object.entries(fields).filter(([, v]) => v !== null)
       .map(([k, v]) => `${k}=${typeof v === "number" ? num(v, 3) : JSON.stringify(v)}`).join(" ");
     log.append(h("div", {}, `${when} ${ev.type} ${text}`.trim()));
     log.scrollTop = log.scrollHeight;
@@ -606,6 +606,9 @@ async function replayOf(evalJob, into) {
   try {
     const data = await api(`/jobs/${evalJob.id}/artifacts/replay.json`);
     player(data, into);
+    const where = evalJob.config.split === "test" ? "held-out test rooms" : "training rooms";
+    into.prepend(h("p", { class: "muted", id: "replay-source" }, `Episodes of eval job `,
+      h("a", { href: `/ui/jobs/${evalJob.id}` }, short(evalJob.id)), ` on ${where} (seed ${evalJob.config.seed}).`));
   } catch (e) {
     if (e.status === 404) into.replaceChildren(h("p", { class: "muted" }, "This evaluation kept no episodes to replay."));
     else throw e;
@@ -633,7 +636,7 @@ async function replayPage(id) {
       const ev = await api("/jobs/eval", { method: "POST", body: { source: job.id, episodes: 20, split: "test" } });
       follow(ev);
     } catch (e) { run.disabled = false; showError(stage, e); }
-  } }, "Drive 3 new held-out rooms");
+  } }, "Evaluate on 20 held-out rooms and replay");
   chooser.append(run);
   const ready = mine.filter((e) => e.status === "succeeded");
   if (ready.length) {
@@ -654,6 +657,7 @@ async function replayPage(id) {
       status.replaceChildren(`Evaluating on held-out rooms (job `, h("a", { href: `/ui/jobs/${e.id}` }, short(e.id)), `): `, badge(e.status), " ", progressBar(e.progress));
       if (finished(e)) {
         clearInterval(tid);
+        run.disabled = false;
         if (e.status === "succeeded") replayOf(e, stage);
         else status.append(h("div", { class: "error-box" }, e.error || `the eval job was ${e.status}`));
       }
