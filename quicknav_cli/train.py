@@ -107,10 +107,20 @@ def train(
     if print_only:
         print_config(cfg)
         return
+    from quicknav_core.train.trainers import local_devices
+
+    try:
+        devices = local_devices(cfg.devices)
+    except ValueError as e:
+        fail(str(e))
+    if cfg.num_envs % len(devices):
+        fail(f"devices={cfg.devices!r} is {len(devices)} devices here, which must divide"
+             f" num_envs={cfg.num_envs}")  # fmt: skip
     enable_compilation_cache()
     console.print(
         f"training {cfg.trainer_kind} ({cfg.network.kind}) for {cfg.total_steps:,} env steps,"
-        f" {cfg.num_envs} envs, grid {cfg.env.grid_size} -> {run_dir}"
+        f" {cfg.num_envs} envs, grid {cfg.env.grid_size}"
+        f"{f', {len(devices)} devices' if len(devices) > 1 else ''} -> {run_dir}"
     )
     columns = (
         TextColumn("[progress.description]{task.description}"), BarColumn(),

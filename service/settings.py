@@ -58,6 +58,16 @@ class Settings(BaseSettings):
     max_envs: int = Field(4096, ge=1, le=1_048_576)
     max_total_steps: int = Field(200_000_000, ge=1)
     max_grid_size: int = Field(64, ge=4, le=128)
+    max_devices: int = Field(
+        1, ge=1, le=1024,
+        description="most devices one training job may span (TrainConfig.devices); set it to"
+        " the device count of the workers (`devices: all` is taken as this many)",
+    )  # fmt: skip
+    devices: str | None = Field(
+        None, pattern=r"^\d+(,\d+)*$",
+        description="the accelerators a worker owns, as CUDA/ROCm ordinals (e.g. '0,1'): its"
+        " jobs see only these (unset: every device of the machine)",
+    )  # fmt: skip
     max_eval_episodes: int = Field(10_000, ge=1)
     max_sweep_trials: int = Field(1000, ge=1)
     max_concurrent_jobs: int = Field(

@@ -353,13 +353,17 @@ class Worker:
 
 
 def _enable_jax_cache(settings: Settings) -> None:
-    """JAX's persistent compilation cache in the data folder, unless JAX_COMPILATION_CACHE_DIR
-    already names one (an operator's shared cache, or a test session's); and the room-bank cache
-    (a bank is carved once per config, then read back)."""
+    """The worker's devices (QUICKNAV_DEVICES); JAX's persistent compilation cache in the data
+    folder, unless JAX_COMPILATION_CACHE_DIR already names one (an operator's shared cache, or a
+    test session's); and the room-bank cache (a bank is carved once per config, then read back)."""
     import jax
 
     from quicknav_core.env.rooms import set_bank_cache
 
+    if settings.devices is not None:
+        # before the first computation starts a backend: this worker sees only its devices
+        jax.config.update("jax_cuda_visible_devices", settings.devices)
+        jax.config.update("jax_rocm_visible_devices", settings.devices)
     set_bank_cache(settings.data_dir / "room-banks")
 
     if os.environ.get("JAX_COMPILATION_CACHE_DIR"):

@@ -13,6 +13,8 @@ from pydantic import Field, model_validator
 from quicknav_core.config.base import TRACED, StrictModel
 from quicknav_core.config.env import EnvConfig
 
+MAX_DEVICES = 1024  # local accelerators one process can address
+
 
 class MLPNetwork(StrictModel):
     """ReLU MLP; ``memory_size > 0`` adds the paper's memory head (a recurrent carry)."""
@@ -134,6 +136,12 @@ class TrainConfig(StrictModel):
     chunk_steps: int = Field(
         50_000, ge=1, le=1_000_000_000, description="env steps per jit-compiled chunk (progress)"
     )
+    devices: Annotated[int, Field(ge=1, le=MAX_DEVICES)] | Literal["all"] = Field(
+        1,
+        description="local JAX devices the run spans, data parallel: the env batch is split over"
+        " them, parameters are replicated, gradients averaged ('all': every device the process"
+        " sees; must divide num_envs)",
+    )  # fmt: skip
 
     @property
     def recurrent_network(self) -> bool:
@@ -166,6 +174,13 @@ class TrainConfig(StrictModel):
     @model_validator(mode="after")
     def _check_combination(self) -> TrainConfig:
         algo = self.algorithm
+        if isinstance(self.devices, int) and self.num_envs % self.devices:
+            divisors = [d for d in range(1, min(self.num_envs, MAX_DEVICES) + 1) if self.num_envs % d == 0]
+            raise ValueError(
+                f"devices={self.devices} must divide num_envs={self.num_envs} (each device steps an"
+                f" equal slice of the env batch); allowed: {', '.join(map(str, divisors[:12]))}"
+                f"{', ...' if len(divisors) > 12 else ''}"
+            )
         if isinstance(algo, PPOConfig):
             batch = self.num_envs * algo.num_steps
             if self.trainer_kind == "recurrent-ppo":

@@ -13,6 +13,15 @@
 
 No trainer reads ``info["final_obs"]`` (rejax's PPO and ours treat a truncation like an ending),
 so trainers build their env with ``final_obs`` off and skip its second lidar cast per step.
+
+Data parallel (``TrainConfig.devices`` > 1): the state's per-env fields (env states, observations,
+recurrent carries, episode statistics: ``BATCH_FIELDS``) are sharded over a one-axis device mesh
+along the env batch, everything else (parameters, optimiser state, keys) is replicated, and the
+chunk is compiled for those shardings. XLA's SPMD partitioner then runs each device's slice of the
+rollout where it lives and sums the loss gradient over devices (an all-reduce: the pmean of
+data-parallel training), so the run computes what the one-device run computes, up to the order of
+float reductions. PPO's minibatches are drawn from the whole batch, as on one device. SAC and TD3
+shard their env stepping the same way; their replay buffer and updates stay replicated.
 """
 
 from __future__ import annotations
@@ -98,6 +107,20 @@ def _sac_mode(module, obs):
 UNIT_STEPS = 4096
 
 
+def local_devices(requested: int | str) -> list:
+    """The devices a run spans: the first ``requested`` local devices (or all of them); a
+    ValueError naming ``devices`` when the process has fewer."""
+    devices = jax.local_devices()
+    if requested == "all":
+        return devices
+    if requested > len(devices):
+        raise ValueError(
+            f"devices={requested} but this process sees {len(devices)} {devices[0].platform}"
+            f" device(s); allowed: 1..{len(devices)} or 'all'"
+        )
+    return devices[:requested]
+
+
 def _largest_divisor_at_most(n: int, cap: int) -> int:
     return max(d for d in range(1, min(n, max(cap, 1)) + 1) if n % d == 0)
 
@@ -109,9 +132,19 @@ class Trainer:
     the result, does not depend on how units are grouped into chunks."""
 
     config: TrainConfig
+    # top-level state fields whose leading axis is the env batch (sharded over devices)
+    BATCH_FIELDS: tuple[str, ...] = ()
 
     def __init__(self, config: TrainConfig):
         self.config = config
+        self.devices = local_devices(config.devices)
+        if config.num_envs % len(self.devices):
+            raise ValueError(
+                f"devices={config.devices} gives {len(self.devices)} devices, which must divide"
+                f" num_envs={config.num_envs}; allowed: a device count that divides num_envs"
+            )
+        self.mesh = (jax.sharding.Mesh(self.devices, ("envs",)) if len(self.devices) > 1
+                     else None)  # fmt: skip
         # nothing here reads the final observations: do not pay a second lidar cast for them
         self.env, self.env_params = config.env.model_copy(update={"final_obs": False}).build("train")
         updates = max(1, math.ceil(config.total_steps / config.steps_per_update))
@@ -167,7 +200,33 @@ class Trainer:
         return serialization.to_bytes(jax.device_get(state))
 
     def from_bytes(self, data: bytes):
-        return serialization.from_bytes(self.init_state(), data)
+        return self.place(serialization.from_bytes(jax.device_get(self.init_state()), data))
+
+    def state_sharding(self, state) -> Any:
+        """Per leaf: split along the env batch (a ``BATCH_FIELDS`` leaf) or replicated."""
+        from jax.sharding import NamedSharding, PartitionSpec
+
+        split = NamedSharding(self.mesh, PartitionSpec("envs"))
+        whole = NamedSharding(self.mesh, PartitionSpec())
+
+        def pick(path, leaf):
+            top = getattr(path[0], "name", None) if path else None
+            batched = (top in self.BATCH_FIELDS and getattr(leaf, "ndim", 0) >= 1
+                       and leaf.shape[0] == self.config.num_envs)  # fmt: skip
+            return split if batched else whole
+
+        return jax.tree_util.tree_map_with_path(pick, state)
+
+    def place(self, state) -> Any:
+        """The state on this run's devices (unchanged on one device)."""
+        if self.mesh is None:
+            return state
+        return jax.device_put(state, self.state_sharding(state))
+
+    def compile_sharded(self, fn: Callable, state) -> Callable:
+        """``fn(state) -> (state, metrics)`` compiled to keep the state's shardings."""
+        sharding = self.state_sharding(state)
+        return jax.jit(fn, in_shardings=(sharding,), out_shardings=(sharding, None))
 
     def train_batch(self, configs: list[TrainConfig], env_params: list, on_chunk: ChunkCallback | None = None):
         """Train ``configs`` (this trainer's config up to traced numbers) side by side.
@@ -194,6 +253,8 @@ def _mean_of_units(units: list[dict[str, Any]]) -> dict[str, float]:
 class RecurrentPPOTrainer(Trainer):
     """QuickNav's recurrent PPO (any network, memoryless included)."""
 
+    BATCH_FIELDS = ("env_state", "obs", "start", "carry", "stats")
+
     def __init__(self, config: TrainConfig):
         super().__init__(config)
         algo: PPOConfig = config.algorithm
@@ -205,21 +266,28 @@ class RecurrentPPOTrainer(Trainer):
         )  # fmt: skip
         self._batched: dict[int, tuple] = {}
         self._clear = jax.jit(jax.vmap(lambda s: s.clear_totals()))
+        self._sharded_unit = None
 
     def init_state(self):
-        return self.algo.init(
+        return self.place(self.algo.init(
             jax.random.PRNGKey(self.config.seed), PPOHyper.from_config(self.config.algorithm)
-        )
+        ))  # fmt: skip
 
     def run_unit(self, state):
-        state, metrics = self.algo.train_chunk(state, self.updates_per_unit)
+        if self.mesh is None:
+            state, metrics = self.algo.train_chunk(state, self.updates_per_unit)
+        else:
+            if self._sharded_unit is None:
+                algo, n = self.algo, self.updates_per_unit
+                self._sharded_unit = self.compile_sharded(lambda s: algo.chunk(s, n), state)
+            state, metrics = self._sharded_unit(state)
         return jax.block_until_ready((state, metrics))
 
     def finish_chunk(self, state, units):
         out = _mean_of_units(units)
         out.update(summarize(state.stats))
         state = state.replace(stats=self._clear(state.stats))
-        return state, out
+        return self.place(state), out  # (the cleared totals may come back laid out otherwise)
 
     def env_steps(self, state) -> int:
         return int(state.env_steps)
@@ -257,6 +325,8 @@ class RecurrentPPOTrainer(Trainer):
 # --------------------------------------------------------------------------- rejax
 class RejaxTrainer(Trainer):
     """rejax's PPO, SAC or TD3 on QuickNav (wrapped to record episode statistics)."""
+
+    BATCH_FIELDS = ("env_state", "last_obs", "last_done", "rew_rms_state")
 
     def __init__(self, config: TrainConfig):
         super().__init__(config)
@@ -319,19 +389,27 @@ class RejaxTrainer(Trainer):
         # episode statistics); calling it again continues from the train state.
         self.algo = created.replace(eval_callback=_stats_callback)
         self._train = jax.jit(lambda ts: self.algo.train(train_state=ts)[0])
+        self._sharded_train = None  # compiled on first use when the run spans several devices
         self._clear = jax.jit(jax.vmap(lambda s: s.clear_totals()))
         self._batched: dict[int, Any] = {}
 
     def init_state(self):
-        return self.algo.init_state(jax.random.PRNGKey(self.config.seed))
+        return self.place(self.algo.init_state(jax.random.PRNGKey(self.config.seed)))
 
     def run_unit(self, state):
-        return jax.block_until_ready(self._train(state)), {}
+        if self.mesh is None:
+            return jax.block_until_ready(self._train(state)), {}
+        if self._sharded_train is None:
+            algo = self.algo
+            self._sharded_train = self.compile_sharded(
+                lambda ts: (algo.train(train_state=ts)[0], {}), state
+            )
+        return jax.block_until_ready(self._sharded_train(state)[0]), {}
 
     def finish_chunk(self, state, units):
         out = summarize(state.env_state.stats)
         env_state = state.env_state.replace(stats=self._clear(state.env_state.stats))
-        return state.replace(env_state=env_state), out
+        return self.place(state.replace(env_state=env_state)), out
 
     def env_steps(self, state) -> int:
         return int(state.global_step)

@@ -70,6 +70,18 @@ def check_train(cfg: TrainConfig, s: Settings, origin: Origin, prefix: str = "")
                 origin.loc(prefix + path),
                 f"{field}={value} exceeds this server's limit {name}={limit} (QUICKNAV_{name.upper()})",
             )
+    devices = s.max_devices if cfg.devices == "all" else cfg.devices
+    if devices > s.max_devices:
+        raise limit_error(
+            origin.loc(prefix + "devices"),
+            f"devices={cfg.devices} but this server's workers have {s.max_devices} device(s) per"
+            f" job; allowed: 1..{s.max_devices} or 'all' (QUICKNAV_MAX_DEVICES)",
+        )
+    if cfg.devices == "all" and cfg.num_envs % devices:
+        raise limit_error(
+            origin.loc(prefix + "devices"),
+            f"devices='all' is {devices} device(s) here, which must divide num_envs={cfg.num_envs}",
+        )
     if not prefix:  # a sweep's base is checked as the sweep's trials, side by side
         from quicknav_core.train.memory import train_memory
 
