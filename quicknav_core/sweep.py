@@ -32,8 +32,8 @@ from quicknav_core.config import TrainConfig, apply_overrides
 from quicknav_core.config.sweep import METRICS, ParamSpec, SweepConfig
 from quicknav_core.train.batched import shape_signature, train_batch
 
-__all__ = ["SweepConfig", "evaluate_trial", "make_storage", "objective_value", "run_sweep",
-           "write_outputs"]  # fmt: skip
+__all__ = ["SweepConfig", "evaluate_trial", "finished_count", "make_storage", "objective_value",
+           "open_study", "retry_lost", "run_batch", "run_sweep", "write_outputs", "write_trials"]  # fmt: skip
 
 def evaluate_trial(trainer, state, env_params, cfg: SweepConfig) -> dict[str, Any]:
     """Navigation metrics of one trained trial on the train bank (never the test bank)."""
@@ -80,88 +80,148 @@ def _sample(trial, space: dict[str, ParamSpec]) -> dict[str, Any]:
     return params
 
 
+FINISHED_STATES = ("COMPLETE", "PRUNED", "FAIL")
+
+
+def open_study(cfg: SweepConfig, storage, study_name: str | None = None):
+    """The sweep's Optuna study on ``storage`` (created, or loaded when it exists)."""
+    import optuna
+
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    sampler = (optuna.samplers.TPESampler(seed=cfg.sampler_seed) if cfg.sampler == "tpe"
+               else optuna.samplers.RandomSampler(seed=cfg.sampler_seed))  # fmt: skip
+    pruner = optuna.pruners.MedianPruner() if cfg.pruner == "median" else optuna.pruners.NopPruner()
+    return optuna.create_study(
+        study_name=study_name or cfg.study_name, storage=storage, sampler=sampler, pruner=pruner,
+        direction=cfg.resolved_direction, load_if_exists=True,
+    )  # fmt: skip
+
+
+def _retried(study) -> set[int]:
+    """Numbers of trials lost with their worker and run again (kept as study user attributes)."""
+    return {int(k.split(":", 1)[1]) for k in study.user_attrs if k.startswith("retried:")}
+
+
+def finished_count(study, tag: str | None = None) -> int:
+    """Finished trials that count toward ``trials`` (those of batch ``tag`` only, when given): a
+    trial lost with its worker and run again under a new number does not count, its rerun does."""
+    retried = _retried(study)
+    return sum(
+        t.state.name in FINISHED_STATES and t.number not in retried
+        and (tag is None or t.user_attrs.get("batch") == tag)
+        for t in study.get_trials(deepcopy=False)
+    )  # fmt: skip
+
+
+def retry_lost(study, tag: str) -> int:
+    """Trials of batch ``tag`` left RUNNING by a worker that died: each is told failed, noted as
+    retried (so it does not count) and its params enqueued, so the next ask runs them again.
+    Returns how many."""
+    import optuna
+
+    lost = [t for t in study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.RUNNING,))
+            if t.user_attrs.get("batch") == tag]  # fmt: skip
+    for t in lost:
+        study.enqueue_trial(t.params, skip_if_exists=False)
+        study.set_user_attr(f"retried:{t.number}", "its worker was lost; its params run again")
+        study.tell(t.number, state=optuna.trial.TrialState.FAIL)
+    return len(lost)
+
+
+def run_batch(study, cfg: SweepConfig, count: int, tag: str | None = None,
+              stop: Callable[[], bool] | None = None) -> list[dict[str, Any]]:  # fmt: skip
+    """Ask ``count`` trials, train them (trials that share array shapes side by side in one
+    compiled program), evaluate each on the train bank and tell the study. Trials carry
+    ``batch=tag`` when given. ``stop()`` true at a chunk end stops the training and tells the
+    group's trials failed ("stopped"). Returns per-group timings."""
+    import optuna
+
+    asked = [study.ask() for _ in range(count)]
+    groups: dict[str, list[tuple[Any, TrainConfig]]] = {}
+    for trial in asked:
+        if tag is not None:
+            trial.set_user_attr("batch", tag)
+        try:
+            tcfg = apply_overrides(cfg.base, _sample(trial, cfg.space))
+        except Exception as e:
+            trial.set_user_attr("error", f"{type(e).__name__}: {e}")
+            study.tell(trial, state=optuna.trial.TrialState.FAIL)
+            continue
+        groups.setdefault(shape_signature(tcfg), []).append((trial, tcfg))
+    timings = []
+    for members in groups.values():
+        t0 = time.perf_counter()
+        trials = [m[0] for m in members]
+        try:
+
+            def on_chunk(c, per_trial, trials=trials):
+                for tr, m in zip(trials, per_trial, strict=True):
+                    tr.report(m.get("success_rate", float("nan")), c)
+                if stop is not None and stop():
+                    return True
+                return all(tr.should_prune() for tr in trials) and cfg.pruner != "none"
+
+            trainer, states, env_params, _ = train_batch([m[1] for m in members], on_chunk)
+            if stop is not None and stop():
+                for trial in trials:
+                    trial.set_user_attr("error", "stopped (the sweep was cancelled or its worker stopped)")
+                    study.tell(trial, state=optuna.trial.TrialState.FAIL)
+                timings.append({"trials": len(members), "seconds": time.perf_counter() - t0})
+                continue
+            for trial, state, params in zip(trials, states, env_params, strict=True):
+                metrics = evaluate_trial(trainer, state, params, cfg)
+                value = objective_value(metrics, cfg.objective)
+                trial.set_user_attr("metrics", json.loads(json.dumps(metrics, default=float)))
+                if math.isnan(value):
+                    trial.set_user_attr("error", f"objective {cfg.objective} is NaN (no successes)")
+                    study.tell(trial, state=optuna.trial.TrialState.FAIL)
+                else:
+                    study.tell(trial, value)
+        except Exception as e:
+            msg = f"{type(e).__name__}: {e}"
+            for trial in trials:
+                trial.set_user_attr("error", msg)
+                trial.set_user_attr("traceback", traceback.format_exc()[-4000:])
+                study.tell(trial, state=optuna.trial.TrialState.FAIL)
+        timings.append({"trials": len(members), "seconds": time.perf_counter() - t0})
+    return timings
+
+
 def run_sweep(
     cfg: SweepConfig, out_dir: Path, progress: Callable[[dict], None] | None = None
 ) -> dict[str, Any]:
     """Run (or continue) a study until it has ``cfg.trials`` finished trials; write the outputs."""
     import optuna
 
-    optuna.logging.set_verbosity(optuna.logging.WARNING)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "sweep_config.json").write_text(cfg.model_dump_json(indent=2))
-    sampler = (optuna.samplers.TPESampler(seed=cfg.sampler_seed) if cfg.sampler == "tpe"
-               else optuna.samplers.RandomSampler(seed=cfg.sampler_seed))  # fmt: skip
-    pruner = optuna.pruners.MedianPruner() if cfg.pruner == "median" else optuna.pruners.NopPruner()
-    study = optuna.create_study(
-        study_name=cfg.study_name, storage=make_storage(cfg, out_dir), sampler=sampler, pruner=pruner,
-        direction=cfg.resolved_direction, load_if_exists=True,
-    )  # fmt: skip
+    study = open_study(cfg, make_storage(cfg, out_dir))
     # trials left running by an interrupted earlier run are failed, not lost
     for t in study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.RUNNING,)):
         study.tell(t.number, state=optuna.trial.TrialState.FAIL)
-    finished_states = (optuna.trial.TrialState.COMPLETE, optuna.trial.TrialState.PRUNED,
-                       optuna.trial.TrialState.FAIL)  # fmt: skip
     timings = []
     while True:
-        done = len(study.get_trials(deepcopy=False, states=finished_states))
+        done = finished_count(study)
         if done >= cfg.trials:
             break
-        asked = [study.ask() for _ in range(min(cfg.parallel, cfg.trials - done))]
-        groups: dict[str, list[tuple[Any, TrainConfig]]] = {}
-        for trial in asked:
-            try:
-                tcfg = apply_overrides(cfg.base, _sample(trial, cfg.space))
-            except Exception as e:
-                trial.set_user_attr("error", f"{type(e).__name__}: {e}")
-                study.tell(trial, state=optuna.trial.TrialState.FAIL)
-                continue
-            groups.setdefault(shape_signature(tcfg), []).append((trial, tcfg))
-        for members in groups.values():
-            t0 = time.perf_counter()
-            trials = [m[0] for m in members]
-            try:
-
-                def on_chunk(c, per_trial, trials=trials):
-                    for tr, m in zip(trials, per_trial, strict=True):
-                        tr.report(m.get("success_rate", float("nan")), c)
-                    return all(tr.should_prune() for tr in trials) and cfg.pruner != "none"
-
-                trainer, states, env_params, _ = train_batch([m[1] for m in members], on_chunk)
-                for trial, state, params in zip(trials, states, env_params, strict=True):
-                    metrics = evaluate_trial(trainer, state, params, cfg)
-                    value = objective_value(metrics, cfg.objective)
-                    trial.set_user_attr("metrics", json.loads(json.dumps(metrics, default=float)))
-                    if math.isnan(value):
-                        trial.set_user_attr(
-                            "error", f"objective {cfg.objective} is NaN (no successes)"
-                        )
-                        study.tell(trial, state=optuna.trial.TrialState.FAIL)
-                    else:
-                        study.tell(trial, value)
-            except Exception as e:
-                msg = f"{type(e).__name__}: {e}"
-                for trial in trials:
-                    trial.set_user_attr("error", msg)
-                    trial.set_user_attr("traceback", traceback.format_exc()[-4000:])
-                    study.tell(trial, state=optuna.trial.TrialState.FAIL)
-            timings.append({"trials": len(members), "seconds": time.perf_counter() - t0})
-            write_trials(study, cfg, out_dir)
-            if progress:
-                best = _best(study)
-                stop = progress({"finished": len(study.get_trials(deepcopy=False, states=finished_states)),
-                                 "total": cfg.trials, "best_value": best[0], "best_params": best[1]})  # fmt: skip
-                if stop:  # the caller asked to stop between groups (cancel, shutdown)
-                    summary = write_outputs(study, cfg, out_dir)
-                    summary["timings"] = timings
-                    summary["stopped"] = True
-                    return summary
+        timings += run_batch(study, cfg, min(cfg.parallel, cfg.trials - done))
+        write_trials(study, cfg, out_dir)
+        if progress:
+            best = best_so_far(study)
+            stop = progress({"finished": finished_count(study), "total": cfg.trials,
+                             "best_value": best[0], "best_params": best[1]})  # fmt: skip
+            if stop:  # the caller asked to stop between batches (cancel, shutdown)
+                summary = write_outputs(study, cfg, out_dir)
+                summary["timings"] = timings
+                summary["stopped"] = True
+                return summary
     summary = write_outputs(study, cfg, out_dir)
     summary["timings"] = timings
     return summary
 
 
-def _best(study) -> tuple[float | None, dict | None]:
+def best_so_far(study) -> tuple[float | None, dict | None]:
     try:
         return study.best_value, study.best_params
     except ValueError:
@@ -172,13 +232,16 @@ def write_trials(study, cfg: SweepConfig, out_dir: Path) -> dict[str, Any]:
     """``trials.json``: the objective, its direction and every trial so far (number, state, value,
     params, metrics, error, seconds), rewritten after each batch so a running sweep can be watched."""
     rows = []
+    retried = _retried(study)
     for t in study.get_trials(deepcopy=False):
         seconds = ((t.datetime_complete - t.datetime_start).total_seconds()
                    if t.datetime_complete and t.datetime_start else None)  # fmt: skip
         value = t.value if t.value is not None and math.isfinite(t.value) else None
+        error = study.user_attrs.get(f"retried:{t.number}") if t.number in retried else None
         rows.append({"number": t.number, "state": t.state.name, "value": value, "params": t.params,
-                     "metrics": t.user_attrs.get("metrics"), "error": t.user_attrs.get("error"),
-                     "seconds": seconds})  # fmt: skip
+                     "metrics": t.user_attrs.get("metrics"),
+                     "error": error or t.user_attrs.get("error"), "seconds": seconds,
+                     "batch": t.user_attrs.get("batch"), "counted": t.number not in retried})  # fmt: skip
     out = {"objective": cfg.objective, "direction": cfg.resolved_direction, "trials": rows}
     tmp = out_dir / "trials.json.tmp"
     tmp.write_text(json.dumps(_finite(out), default=float, allow_nan=False))
@@ -210,7 +273,7 @@ def write_outputs(study, cfg: SweepConfig, out_dir: Path) -> dict[str, Any]:
         for t in trials:
             w.writerow([t.number, t.state.name, t.value, *[t.params.get(n) for n in names],
                         t.user_attrs.get("error", "")])  # fmt: skip
-    best_value, best_params = _best(study)
+    best_value, best_params = best_so_far(study)
     out = {"study": study.study_name, "trials": len(trials), "best_value": best_value,
            "best_params": best_params, "direction": cfg.resolved_direction, "objective": cfg.objective}  # fmt: skip
     if best_params is not None:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import errno
 import logging
+import math
 import os
 import socket
 import threading
@@ -35,6 +36,7 @@ from service.settings import Settings
 log = logging.getLogger("quicknav.worker")
 
 MAX_BACKOFF_S = 10.0
+COORDINATE_POLL_S = 1.0  # how often a sweep looks at its trial batches
 CANCEL_POLL_S = 1.0  # a running job's cancel flag is read at most this often
 
 
@@ -77,6 +79,7 @@ class Worker:
         self.shutdown = threading.Event()
         self.busy = False
         self._trainers: dict[str, Any] = {}
+        self._coordinators: list[threading.Thread] = []  # sweeps this worker follows
         settings.artifacts_dir.mkdir(parents=True, exist_ok=True)
 
     # ------------------------------------------------------------------ loop
@@ -100,6 +103,7 @@ class Worker:
                 continue
             if not ran:
                 self.shutdown.wait(poll_s)
+        self.join_coordinators()
 
     def run_burst(self, poll_s: float = 0.25) -> int:
         """Drain the store, then return the number of jobs run.
@@ -123,6 +127,7 @@ class Worker:
             if counts.get("queued", 0) == 0 and counts.get("running", 0) == 0:
                 break
             self.shutdown.wait(poll_s)
+        self.join_coordinators()
         return ran
 
     def run_once(self) -> bool:
@@ -132,7 +137,28 @@ class Worker:
         job = self.store.claim(self.id, self.settings.lease_s)
         if job is None:
             return False
-        self.busy = True
+        if job.kind == JobKind.sweep:
+            # a sweep only coordinates (its trials are child jobs any worker claims, this one
+            # included): it runs beside the worker's jobs instead of holding the worker
+            t = threading.Thread(target=self._run_claimed, args=(job, False),
+                                 name=f"sweep-{job.id[:8]}", daemon=True)  # fmt: skip
+            self._coordinators = [c for c in self._coordinators if c.is_alive()] + [t]
+            t.start()
+            return True
+        self._run_claimed(job, True)
+        return True
+
+    def join_coordinators(self, timeout: float = 30.0) -> None:
+        """Wait for the sweeps this worker coordinates to stop (after a shutdown they hand their
+        jobs back)."""
+        deadline = time.monotonic() + timeout
+        for t in self._coordinators:
+            t.join(max(0.0, deadline - time.monotonic()))
+
+    def _run_claimed(self, job: Job, busy: bool) -> None:
+        """Run a claimed job under a heartbeat that renews its lease."""
+        if busy:
+            self.busy = True
         lost = threading.Event()
         beat_stop = threading.Event()
 
@@ -154,8 +180,8 @@ class Worker:
         finally:
             beat_stop.set()
             hb.join()
-            self.busy = False
-        return True
+            if busy:
+                self.busy = False
 
     # ------------------------------------------------------------------ store calls
     def _best_effort(self, fn: Callable, *args) -> Any:
@@ -233,6 +259,7 @@ class Worker:
                 JobKind.train: self._train,
                 JobKind.eval: self._eval,
                 JobKind.sweep: self._sweep,
+                JobKind.trial: self._trial,
             }
             outcome, result = runner[job.kind](job, lost)
         except Exception as e:
@@ -329,27 +356,106 @@ class Worker:
         self._report(job, 1.0, result["metrics"])
         return "done", {"agent": result["agent"], "metrics": result["metrics"]}
 
+    def sweep_storage(self, sweep_id: str):
+        """The Optuna storage of a sweep job's study, shared by every worker: journal storage on
+        this store's Redis (keys under quicknav:sweep:<id>:) or SQLite in the sweep's folder."""
+        if self.settings.redis_url:
+            from optuna.storages import JournalStorage
+            from optuna.storages.journal import JournalRedisBackend
+
+            return JournalStorage(
+                JournalRedisBackend(self.settings.redis_url, prefix=f"quicknav:sweep:{sweep_id}:")
+            )
+        import optuna
+
+        path = (self.job_dir(sweep_id) / "study.db").resolve()
+        return optuna.storages.RDBStorage(
+            f"sqlite:///{path}", engine_kwargs={"connect_args": {"timeout": 60}}
+        )
+
     def _sweep(self, job: Job, lost: threading.Event):
+        """Coordinate a sweep: create its study, submit its trial batches as child jobs (any
+        worker runs them, all telling the one study), follow them, then write the outputs."""
         from quicknav_core.config import SweepConfig
-        from quicknav_core.sweep import run_sweep
+        from quicknav_core.sweep import (
+            best_so_far,
+            finished_count,
+            open_study,
+            write_outputs,
+            write_trials,
+        )
 
         cfg = SweepConfig.model_validate(self.config_of(job))
+        folder = self.job_dir(job.id)
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / "sweep_config.json").write_text(cfg.model_dump_json(indent=2))
+        study = open_study(cfg, self.sweep_storage(job.id), study_name=f"sweep-{job.id}")
+        children = []
+        for i in range(math.ceil(cfg.trials / cfg.parallel)):
+            size = min(cfg.parallel, cfg.trials - i * cfg.parallel)
+            config = {"parent": job.id, "batch": i, "trials": size, "sweep": cfg.model_dump(mode="json")}
+            # the key makes this idempotent: a coordinator that takes over finds the same children
+            child, _ = self._until_done(self.store.submit, JobKind.trial, {"parent": job.id, "batch": i},
+                                        config, idempotency_key=f"sweep:{job.id}:batch:{i}")  # fmt: skip
+            children.append(child.id)
         why = self._stopper(job, lost)
-        stop_reason: dict[str, str] = {}
-
-        def on_progress(p) -> bool:
-            metrics = {"finished": p["finished"], "total": p["total"], "best_value": p["best_value"],
-                       "best_params": p["best_params"]}  # fmt: skip
-            self._report(job, p["finished"] / p["total"], metrics)
+        shown = None
+        while True:
             reason = why()
-            if reason:
-                stop_reason["why"] = reason
-                return True
-            return False
+            if reason in ("lost", "shutdown"):
+                return reason, {}
+            jobs = [self._best_effort(self.store.get, c) for c in children]
+            if reason == "cancelled":
+                for c in jobs:
+                    if c is not None and not c.status.finished:
+                        self._best_effort(self.store.cancel, c.id)
+            states = [c.status.value for c in jobs if c is not None]
+            best_value, best_params = best_so_far(study)
+            metrics = {"finished": finished_count(study), "total": cfg.trials,
+                       "batches": len(children), "batches_running": states.count("running"),
+                       "batches_failed": states.count("failed"), "best_value": best_value,
+                       "best_params": best_params}  # fmt: skip
+            if metrics != shown:
+                shown = metrics
+                self._report(job, min(1.0, metrics["finished"] / cfg.trials), metrics)
+                write_trials(study, cfg, folder)
+            if all(c is not None and c.status.finished for c in jobs):
+                break
+            self.shutdown.wait(COORDINATE_POLL_S)
+        summary = write_outputs(study, cfg, folder)
+        summary.update({"batches": len(children), "children": children,
+                        "batches_failed": states.count("failed"),
+                        "batches_cancelled": states.count("cancelled")})  # fmt: skip
+        if reason == "cancelled":
+            return "cancelled", summary
+        if summary["best_value"] is None and states.count("failed"):
+            first = next(c for c in jobs if c.status.value == "failed")
+            raise RuntimeError(f"no trial completed; trial batch {first.id} failed: {first.error}")
+        return "done", summary
 
-        summary = run_sweep(cfg, self.job_dir(job.id), progress=on_progress)
-        summary.pop("timings", None)
-        return stop_reason.get("why", "done"), summary
+    def _trial(self, job: Job, lost: threading.Event):
+        """A batch of a sweep's trials: ask them from the shared study, train, evaluate, tell.
+        Run again after its worker died, it first reruns the trials that worker left unfinished."""
+        from quicknav_core.config import SweepConfig
+        from quicknav_core.sweep import finished_count, open_study, retry_lost, run_batch
+
+        spec = self.config_of(job)
+        cfg = SweepConfig.model_validate(spec["sweep"])
+        parent, tag = spec["parent"], str(spec["batch"])
+        study = open_study(cfg, self.sweep_storage(parent), study_name=f"sweep-{parent}")
+        retried = retry_lost(study, tag)
+        why = self._stopper(job, lost)
+        todo = spec["trials"] - finished_count(study, tag)
+        if todo > 0 and why(fresh=True) is None:
+            run_batch(study, cfg, todo, tag=tag, stop=lambda: why() is not None)
+        reason = why(fresh=True)
+        if reason in ("lost", "shutdown"):
+            return reason, {}
+        mine = [t for t in study.get_trials(deepcopy=False) if t.user_attrs.get("batch") == tag]
+        result = {"parent": parent, "batch": spec["batch"], "trials": finished_count(study, tag),
+                  "retried": retried,
+                  "values": {str(t.number): t.value for t in mine if t.value is not None}}  # fmt: skip
+        return reason or "done", result
 
 
 def _enable_jax_cache(settings: Settings) -> None:

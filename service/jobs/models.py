@@ -28,6 +28,7 @@ class JobKind(StrEnum):
     train = "train"
     sweep = "sweep"
     eval = "eval"
+    trial = "trial"  # a batch of a sweep's trials: a child job the sweep submits, never a client
 
 
 class Job(BaseModel):

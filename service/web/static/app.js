@@ -5,7 +5,7 @@
 
 const POLL_MS = 1500;
 const STATUSES = ["queued", "running", "succeeded", "failed", "cancelled"];
-const KINDS = ["train", "sweep", "eval"];
+const KINDS = ["train", "sweep", "eval", "trial"];
 const RAY_COLOURS = { 0: "#9e9e9e", 1: "#d62728", 2: "#2ca02c" }; // as in the GIFs: none / wall / goal
 const main = document.getElementById("main");
 
@@ -103,8 +103,14 @@ function metricsSummary(job) {
     if (m.episodes !== undefined) return `${m.episodes_done} / ${m.episodes} episodes`;
     return "";
   }
+  if (job.kind === "trial") {
+    const r = job.result || {};
+    return `batch ${job.config.batch} of sweep ${short(job.config.parent)}` +
+      (r.trials !== undefined ? ` · ${r.trials} trial${r.trials === 1 ? "" : "s"} told` : "");
+  }
   if (m.total === undefined) return "";
-  return `${m.finished} / ${m.total} trials · best ${num(m.best_value, 3)}`;
+  const running = m.batches_running ? ` · ${m.batches_running} batch${m.batches_running === 1 ? "" : "es"} running` : "";
+  return `${m.finished} / ${m.total} trials${running} · best ${num(m.best_value, 3)}`;
 }
 
 let timers = [];
