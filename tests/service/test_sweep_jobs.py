@@ -63,6 +63,14 @@ def test_sweep_job__trial_batches_are_child_jobs_telling_one_study(tmp_path):
     assert done.metrics["finished"] == 3 and done.progress == 1.0
     for name in ("trials.csv", "best_params.json", "optimization_history.png"):
         assert (settings.artifacts_dir / sweep.id / name).exists(), name
+    # deleting the sweep deletes its batches too
+    from fastapi.testclient import TestClient
+
+    from service.api.main import create_app
+
+    client = TestClient(create_app(settings, store, start_workers=False))
+    assert client.delete(f"/jobs/{sweep.id}").status_code == 204
+    assert children_of(store, sweep.id) == [] and not (settings.artifacts_dir / sweep.id).exists()
 
 
 def test_sweep_job__cancelling_the_sweep_cancels_its_batches(tmp_path):

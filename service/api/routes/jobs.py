@@ -162,6 +162,16 @@ def delete_job(job_id: str, store: StoreDep, settings: SettingsDep) -> Response:
     job = get_job(store, job_id)
     if not job.status.finished:
         raise HTTPException(409, f"job {job.id} is {job.status.value}; only finished jobs can be deleted")
+    if job.kind == JobKind.sweep:  # its trial batches go with it
+        batches, _ = store.list(kind=JobKind.trial, limit=500)
+        mine = [b for b in batches if b.config.get("parent") == job.id]
+        busy = [b.id for b in mine if not b.status.finished]
+        if busy:
+            raise HTTPException(409, f"sweep {job.id} still has running trial batches ({', '.join(busy)});"
+                                     " delete it once they have stopped")  # fmt: skip
+        for b in mine:
+            shutil.rmtree(settings.artifacts_dir / b.id, ignore_errors=True)
+            store.delete(b.id)
     shutil.rmtree(settings.artifacts_dir / job.id, ignore_errors=True)
     try:
         store.delete(job.id)
