@@ -21,12 +21,17 @@ import tempfile
 import time
 from pathlib import Path
 
-import redis
+# benchmarks/service.py would shadow the service package: import from the repository root
+ROOT = Path(__file__).resolve().parents[1]
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != ROOT / "benchmarks"]
+sys.path.insert(0, str(ROOT))
 
-from quicknav_core.bench.machine import machine_info
-from quicknav_core.config import resolve_sweep
-from service.jobs.models import JobKind
-from service.jobs.redis_store import RedisJobStore
+import redis  # noqa: E402
+
+from quicknav_core.bench.machine import machine_info  # noqa: E402
+from quicknav_core.config import resolve_sweep  # noqa: E402
+from service.jobs.models import JobKind  # noqa: E402
+from service.jobs.redis_store import RedisJobStore  # noqa: E402
 
 
 def run(workers: int, trials: int, url: str, total_steps: int) -> dict:
