@@ -83,13 +83,18 @@ def _sample(trial, space: dict[str, ParamSpec]) -> dict[str, Any]:
 FINISHED_STATES = ("COMPLETE", "PRUNED", "FAIL")
 
 
-def open_study(cfg: SweepConfig, storage, study_name: str | None = None):
-    """The sweep's Optuna study on ``storage`` (created, or loaded when it exists)."""
+def open_study(cfg: SweepConfig, storage, study_name: str | None = None, stream: int = 0):
+    """The sweep's Optuna study on ``storage`` (created, or loaded when it exists).
+
+    ``stream`` picks the sampler's random stream: processes that each open the study and ask
+    (a sweep's trial batches on several workers) need different streams, or every one would
+    draw the same params from the same seed."""
     import optuna
 
     optuna.logging.set_verbosity(optuna.logging.WARNING)
-    sampler = (optuna.samplers.TPESampler(seed=cfg.sampler_seed) if cfg.sampler == "tpe"
-               else optuna.samplers.RandomSampler(seed=cfg.sampler_seed))  # fmt: skip
+    seed = (cfg.sampler_seed + 7919 * stream) % 2**31
+    sampler = (optuna.samplers.TPESampler(seed=seed) if cfg.sampler == "tpe"
+               else optuna.samplers.RandomSampler(seed=seed))  # fmt: skip
     pruner = optuna.pruners.MedianPruner() if cfg.pruner == "median" else optuna.pruners.NopPruner()
     return optuna.create_study(
         study_name=study_name or cfg.study_name, storage=storage, sampler=sampler, pruner=pruner,

@@ -442,7 +442,10 @@ class Worker:
         spec = self.config_of(job)
         cfg = SweepConfig.model_validate(spec["sweep"])
         parent, tag = spec["parent"], str(spec["batch"])
-        study = open_study(cfg, self.sweep_storage(parent), study_name=f"sweep-{parent}")
+        # each batch samples from its own stream (its index; a rerun: also its attempt)
+        stream = 1 + spec["batch"] + 100_003 * (job.attempts - 1)
+        study = open_study(cfg, self.sweep_storage(parent), study_name=f"sweep-{parent}",
+                           stream=stream)  # fmt: skip
         retried = retry_lost(study, tag)
         why = self._stopper(job, lost)
         todo = spec["trials"] - finished_count(study, tag)

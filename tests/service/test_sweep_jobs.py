@@ -57,6 +57,8 @@ def test_sweep_job__trial_batches_are_child_jobs_telling_one_study(tmp_path):
                               storage=f"sqlite:///{settings.artifacts_dir / sweep.id / 'study.db'}")  # fmt: skip
     assert len(study.trials) == 3 and all(t.state.name == "COMPLETE" for t in study.trials)
     assert sorted(t.user_attrs["batch"] for t in study.trials) == ["0", "1", "2"]
+    # each batch draws from its own random stream: three different trials, not one three times
+    assert len({json.dumps(t.params, sort_keys=True) for t in study.trials}) == 3
     assert done.result["best_value"] == study.best_value
     listed = json.loads((settings.artifacts_dir / sweep.id / "trials.json").read_text())
     assert len(listed["trials"]) == 3 and all(t["counted"] for t in listed["trials"])
@@ -116,6 +118,7 @@ def test_sweep_job__two_workers_share_the_study_on_redis(tmp_path, redis_store):
     study = open_study(SweepConfig.model_validate(sweep.config), workers[0].sweep_storage(sweep.id),
                        study_name=f"sweep-{sweep.id}")  # fmt: skip
     assert len(study.trials) == 4 and finished_count(study) == 4
+    assert len({json.dumps(t.params, sort_keys=True) for t in study.trials}) == 4
     assert redis.Redis.from_url(REDIS_URL).keys(f"quicknav:sweep:{sweep.id}:*")
     assert not (settings.artifacts_dir / sweep.id / "study.db").exists()
 
