@@ -1,5 +1,6 @@
-"""`quicknav bench`: figures, never timed tests. Env throughput (JAX vs the NumPy twin), training
-throughput at the paper's sizes, and the paper's Tables 1 and 2 as a learning benchmark."""
+"""`quicknav bench`: figures, never timed tests. Env throughput (JAX vs the NumPy twin), room-bank
+build time, training throughput at the paper's sizes, and the paper's Tables 1 and 2 as a learning
+benchmark."""
 
 from __future__ import annotations
 
@@ -121,6 +122,55 @@ def bench_env(
         console.print(f"target: {t['target']}: measured {t['measured']:,} -> {mark}")
     paths = write_outputs(report, out)
     console.print("wrote " + ", ".join(str(p) for p in paths.values()))
+
+
+@app.command("rooms")
+def bench_rooms(
+    grid: Annotated[
+        list[int] | None, typer.Option("--grid", help="Grid sizes (default 8 16 32 64 128).")
+    ] = None,
+    carver: Annotated[
+        str, typer.Option(help="Carver: auto, paper, centre or carved (see EnvConfig.carver).")
+    ] = "auto",
+    out: Annotated[Path, typer.Option(help="Folder for bench_rooms.json.")] = Path("bench"),
+) -> None:
+    """Seconds to build the train and test room banks per grid size (first call, compile included)."""
+    from rich.table import Table
+
+    from quicknav_core.bench.rooms import (
+        DEFAULT_GRIDS,
+        RoomsBenchConfig,
+        format_table,
+        run_rooms_bench,
+        write_report,
+    )
+    from quicknav_core.env.carving import CARVERS
+
+    grids = grid or list(DEFAULT_GRIDS)
+    bad = [g for g in grids if not 4 <= g <= 128]
+    if bad:
+        fail(f"--grid {bad[0]}: allowed range 4..128")
+    if carver not in ("auto", *CARVERS):
+        fail(f"--carver {carver}: allowed " + ", ".join(("auto", *CARVERS)))
+    cfg = RoomsBenchConfig(grids=grids, carver=carver)
+    with console.status("carving room banks...") as status:
+        try:
+            report = run_rooms_bench(cfg, progress=lambda msg: status.update(msg))
+        except (ConfigError, ValueError) as e:
+            fail(str(e))
+    table = Table(
+        title=f"Room bank build ({report.machine['cpu']}, {report.machine['cores']} cores,"
+        f" {report.machine['jax_backend']})"
+    )
+    for col in ("grid", "carver", "rooms", "free cells", "train s", "test s", "total s"):
+        table.add_column(col, justify="left" if col in ("grid", "carver") else "right")
+    for row in format_table(report):
+        table.add_row(*row)
+    Console(width=max(console.width, 100)).print(table)
+    for t in report.targets:
+        mark = "[green]met[/]" if t["met"] else "[red]NOT met[/]"
+        console.print(f"target: {t['target']}: measured {t['measured']:,} s -> {mark}")
+    console.print(f"wrote {write_report(report, out)}")
 
 
 @app.command("train")

@@ -1,15 +1,27 @@
 """How long the carving walk takes, computed before carving (NumPy and SciPy, no JAX).
 
-The carver (``rooms.carve_room``) is a random walk on the inner cells that jumps back to the centre
-with probability ``return_prob`` each step. Its long-run occupation ``pi`` (the fraction of steps
-spent on each cell) solves ``pi = return_prob * e_centre + (1 - return_prob) * M^T pi`` for the
-walk's move matrix M (moves into the outer wall are refused): one sparse linear solve. A cell
-visited with rate ``pi_c`` is carved within t steps with probability ``1 - exp(-t pi_c)``, so the
-expected number of carved cells after t steps is ``sum_c 1 - exp(-t pi_c)``; the step count at
-which it reaches the carve target is the estimate. Measured against the real carver (grid 16 to
-64, return_prob 0.01 to 0.1, 32 rooms each) the slowest room needed 2.2 to 4.6 times the estimate,
-so a config is refused when ``SLOWEST_ROOM_FACTOR`` times the estimate exceeds its step cap: it
+Centre returns (``rooms`` carvers ``paper`` and ``centre``): the walk on the inner cells jumps back
+to the centre with probability ``return_prob`` each step. Its long-run occupation ``pi`` (the
+fraction of steps spent on each cell) solves ``pi = return_prob * e_centre + (1 - return_prob) *
+M^T pi`` for the walk's move matrix M (moves into the outer wall are refused): one sparse linear
+solve. A cell visited with rate ``pi_c`` is carved within t steps with probability ``1 - exp(-t
+pi_c)``, so the expected number of carved cells after t steps is ``sum_c 1 - exp(-t pi_c)``; the step
+count at which it reaches the carve target is the estimate. Measured against the real carver (grid
+16 to 64, return_prob 0.01 to 0.1, 32 rooms each) the slowest room needed 2.2 to 4.6 times the
+estimate.
+
+Returns to carved cells (carver ``carved``): the walk has no fixed occupation (it restarts
+anywhere in a growing blob), so the estimate is a fitted one. With p = return_prob: the steps a
+walker visiting uniformly random inner cells would need (the coupon collector, ``N ln(N / (N -
+target))``), times the walk's slowdown ``3 + log2(max(grid, 16) / 16) / 2 + 0.12 grid sqrt(p) +
+p / (1 - p)``: its steps are local (3 to 4.5 times the coupon count without returns), and a return
+restarts it inside the blob, about grid/2 cells from the edge, of which an excursion of 1/p steps
+covers sqrt(1/p). Measured (grid 8 to 128, carve_fraction 0.3 to 1, p 0 to 0.9, 64 rooms each):
+the mean room took 0.23 to 1.2 times the estimate, the slowest up to 2.9 times.
+
+A config is refused when ``SLOWEST_ROOM_FACTOR`` times its carver's estimate exceeds the step cap: it
 would spend minutes of CPU and then fail (before this check: grid 48 and 64 with the defaults).
+``choose_carver`` decides what ``carver="auto"`` means from the same estimates.
 """
 
 from __future__ import annotations
@@ -20,6 +32,16 @@ from functools import lru_cache
 import numpy as np
 
 SLOWEST_ROOM_FACTOR = 4.0
+
+# How ``rooms`` carves (``EnvConfig.carver``): the first two return to the centre, the last to a
+# random carved cell.
+CARVERS = ("paper", "centre", "carved")
+# ``carver="auto"``: the paper's exact stream (eight threefry calls a step, ~80 ns a room-step on
+# one CPU core) while the estimate stays under AUTO_PAPER_MAX_STEPS (a default grid-16 bank: under
+# a second); the same walk with block draws (~20 ns a room-step) under AUTO_CENTRE_MAX_STEPS (grid
+# 32 at return_prob 0.05); beyond that, returns to carved cells.
+AUTO_PAPER_MAX_STEPS = 2_000
+AUTO_CENTRE_MAX_STEPS = 50_000
 
 
 @lru_cache(maxsize=256)
@@ -75,12 +97,44 @@ def expected_steps(grid_size: int, return_prob: float, target: int) -> float:
     return hi
 
 
-def feasible(grid_size: int, return_prob: float, target: int, step_cap: int) -> bool:
-    return SLOWEST_ROOM_FACTOR * expected_steps(grid_size, return_prob, target) <= step_cap
+def expected_steps_carved(grid_size: int, return_prob: float, target: int) -> float:
+    """Estimated carving steps until ``target`` cells are free when returns land on carved cells."""
+    n_inner = (grid_size - 2) ** 2
+    if target > n_inner:
+        return math.inf
+    coupon = n_inner * math.log(n_inner / (n_inner - target + 0.5))
+    slowdown = (
+        3.0 + 0.5 * math.log2(max(grid_size, 16) / 16) + 0.12 * grid_size * math.sqrt(return_prob)
+        + return_prob / (1.0 - return_prob)
+    )  # fmt: skip
+    return max(float(target), coupon * slowdown)
+
+
+def carver_steps(carver: str, grid_size: int, return_prob: float, target: int) -> float:
+    """Estimated carving steps per room for one of ``CARVERS``."""
+    if carver == "carved":
+        return expected_steps_carved(grid_size, return_prob, target)
+    return expected_steps(grid_size, return_prob, target)
+
+
+def choose_carver(grid_size: int, return_prob: float, target: int) -> str:
+    """What ``carver="auto"`` means for this room: the first of ``CARVERS`` that is quick."""
+    steps = expected_steps(grid_size, return_prob, target)
+    if steps <= AUTO_PAPER_MAX_STEPS:
+        return "paper"
+    return "centre" if steps <= AUTO_CENTRE_MAX_STEPS else "carved"
+
+
+def feasible(
+    grid_size: int, return_prob: float, target: int, step_cap: int, carver: str = "paper"
+) -> bool:
+    """Whether even the slowest rooms of ``carver`` are expected to meet ``target`` within the cap."""
+    return SLOWEST_ROOM_FACTOR * carver_steps(carver, grid_size, return_prob, target) <= step_cap
 
 
 def largest_return_prob(grid_size: int, target: int, step_cap: int) -> float:
-    """The largest return_prob (to 3 significant digits) that still carves ``target`` cells."""
+    """The largest return_prob (to 3 significant digits) with which a walk that returns to the
+    centre still carves ``target`` cells."""
     if not feasible(grid_size, 0.0, target, step_cap):
         return 0.0
     lo, hi = 0.0, 0.99

@@ -35,21 +35,28 @@ _BIG = f32(BIG)
 
 
 def carve_room_np(
-    rng: np.random.Generator, grid_size: int, target: int, step_cap: int, return_prob: float
-) -> np.ndarray:
-    """Random-walk carving (same algorithm as ``rooms.carve_room``). (g, g) bool, True = wall."""
+    rng: np.random.Generator, grid_size: int, target: int, step_cap: int, return_prob: float,
+    to_carved: bool = False,
+) -> np.ndarray:  # fmt: skip
+    """Random-walk carving (same algorithm as ``rooms.carve_bank``). (g, g) bool, True = wall.
+
+    A return goes to the centre, or with ``to_carved`` (carver ``carved``) to a uniformly random
+    cell carved so far.
+    """
     walls = np.ones((grid_size, grid_size), dtype=bool)
     centre = np.array([grid_size // 2, grid_size // 2])
     walls[centre[0], centre[1]] = False
+    carved = [centre.copy()]
     pos, free, step = centre.copy(), 1, 0
     while free < target and step < step_cap:
         if rng.random() < return_prob:
-            pos = centre.copy()
+            pos = carved[rng.integers(len(carved))].copy() if to_carved else centre.copy()
         nxt = pos + CARVE_MOVES[rng.integers(4)]
         if np.all((nxt >= 1) & (nxt <= grid_size - 2)):
             pos = nxt
         if walls[pos[0], pos[1]]:
             walls[pos[0], pos[1]] = False
+            carved.append(pos.copy())
             free += 1
         step += 1
     return walls
@@ -156,8 +163,9 @@ class QuickNavNumpyEnv(gym.Env):
             c = self.config
             rng = np.random.default_rng([c.room_seed, SPLIT_STREAM[self.split], index])
             self._rooms[index] = carve_room_np(
-                rng, c.grid_size, c.carve_target, c.carve_step_cap, c.return_prob
-            )
+                rng, c.grid_size, c.carve_target, c.carve_step_cap, c.return_prob,
+                to_carved=c.resolved_carver == "carved",
+            )  # fmt: skip
         return self._rooms[index]
 
     # ---------------------------------------------------------------- gymnasium API

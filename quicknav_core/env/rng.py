@@ -22,15 +22,25 @@ def fmix32(x: jax.Array) -> jax.Array:
     return x ^ jnp.right_shift(x, jnp.uint32(16))
 
 
-def hash_key_bits(key: jax.Array, count: int) -> jax.Array:
-    """``count`` uint32 words derived from a PRNG key (typed or raw) by hashing it with a counter."""
+def key_word(key: jax.Array) -> jax.Array:
+    """One uint32 word that mixes all of a PRNG key's data (typed or raw): the seed of a stream."""
     data = jax.random.key_data(key) if jnp.issubdtype(key.dtype, jax.dtypes.prng_key) else key
     data = data.reshape(-1).astype(jnp.uint32)
     mixed = data[0]
     for word in data[1:]:
         mixed = fmix32(mixed ^ fmix32(word + jnp.uint32(GOLDEN)))
-    i = jnp.arange(count, dtype=jnp.uint32)
-    return fmix32(mixed ^ fmix32(i * jnp.uint32(GOLDEN) + jnp.uint32(0x632BE5AB)))
+    return mixed
+
+
+def counter_bits(word: jax.Array, counter: jax.Array) -> jax.Array:
+    """Random uint32 words of the stream ``word`` (``key_word``) at positions ``counter``."""
+    counter = counter.astype(jnp.uint32)
+    return fmix32(word ^ fmix32(counter * jnp.uint32(GOLDEN) + jnp.uint32(0x632BE5AB)))
+
+
+def hash_key_bits(key: jax.Array, count: int) -> jax.Array:
+    """``count`` uint32 words derived from a PRNG key (typed or raw) by hashing it with a counter."""
+    return counter_bits(key_word(key), jnp.arange(count, dtype=jnp.uint32))
 
 
 def uniform_from_bits(bits: jax.Array) -> jax.Array:

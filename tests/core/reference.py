@@ -60,3 +60,61 @@ def flood_fill_component(free: np.ndarray, start: tuple[int, int]) -> np.ndarray
         seen[r, c] = True
         stack.extend([(r + 1, c), (r - 1, c), (r, c + 1), (r, c - 1)])
     return seen
+
+
+GOLDEN32 = 0x9E3779B9
+
+
+def fmix32_np(x):
+    """MurmurHash3's 32-bit finaliser in NumPy uint32 arithmetic (wraps like the JAX one)."""
+    x = np.uint32(x)
+    with np.errstate(over="ignore"):
+        x ^= x >> np.uint32(16)
+        x = np.uint32(x * np.uint32(0x85EBCA6B))
+        x ^= x >> np.uint32(13)
+        x = np.uint32(x * np.uint32(0xC2B2AE35))
+        x ^= x >> np.uint32(16)
+    return x
+
+
+def block_walk_reference(key_data, grid, target, step_cap, return_prob, to_carved, block=240):
+    """The block carvers (``centre``, ``carved``) one step at a time in plain Python.
+
+    Step s draws the hash word at counter 2s (return test in its top 30 bits, direction in its low
+    2) and, for ``to_carved``, the word at 2s+1 (the index of the carved cell a return lands on,
+    among the cells carved before the block of s began). Returns (walls (g, g) bool, steps).
+    """
+    d0, d1 = (np.uint32(v) for v in key_data)
+    with np.errstate(over="ignore"):
+        word = fmix32_np(d0 ^ fmix32_np(np.uint32(d1 + np.uint32(GOLDEN32))))
+
+    def bits(counter):
+        with np.errstate(over="ignore"):
+            mixed = np.uint32(np.uint32(counter) * np.uint32(GOLDEN32) + np.uint32(0x632BE5AB))
+        return int(fmix32_np(word ^ fmix32_np(mixed)))
+
+    threshold = int(np.round(np.float32(return_prob) * np.float32(2**30)))
+    moves = ((1, 0), (-1, 0), (0, -1), (0, 1))
+    walls = np.ones((grid, grid), bool)
+    centre = (grid // 2, grid // 2)
+    walls[centre] = False
+    carved = [centre]
+    pos, step, known = centre, 0, 1
+    while len(carved) < target and step < step_cap:
+        if step % block == 0:
+            known = len(carved)  # returns land on cells carved before this block
+        b = bits(2 * step)
+        if (b >> 2) < threshold:
+            if to_carved:
+                pos = carved[(bits(2 * step + 1) * known) >> 32]
+            else:
+                pos = centre
+        dr, dc = moves[b & 3]
+        r, c = pos[0] + dr, pos[1] + dc
+        if 1 <= r <= grid - 2 and 1 <= c <= grid - 2:
+            pos = (r, c)
+        if walls[pos]:
+            walls[pos] = False
+            carved.append(pos)
+        step += 1
+    return walls, step

@@ -1,4 +1,5 @@
 import json
+import re
 
 import pytest
 from pydantic import ValidationError
@@ -85,3 +86,40 @@ def test_overrides__unknown_key_is_named():
         apply_overrides(EnvConfig(), ["gird_size=8"])
     with pytest.raises(ValidationError, match="grid_size"):
         apply_overrides(EnvConfig(), ["grid_size=2"])
+
+
+def test_config__carver_bad_value_names_field_and_allowed_values():
+    text = _error_text(carver="fast")
+    assert "carver" in text
+    assert all(name in text for name in ("'auto'", "'paper'", "'centre'", "'carved'"))
+
+
+@pytest.mark.parametrize(
+    ("grid", "carver"),
+    [(8, "paper"), (16, "paper"), (32, "centre"), (48, "carved"), (128, "carved")],
+)
+def test_config__auto_carver_keeps_the_paper_walk_where_it_is_quick(grid, carver):
+    assert EnvConfig(grid_size=grid, room_size=grid * 0.5).resolved_carver == carver
+
+
+def test_config__large_grid_accepted_with_auto_refused_with_centre_returns():
+    # grid 48 at the default return_prob: refused before, now carved by returns to carved cells
+    EnvConfig(grid_size=48, room_size=24.0)
+    text = _error_text(grid_size=48, room_size=24.0, carver="paper")
+    assert "carver='paper'" in text and "carve_max_steps (2,116,000)" in text
+    assert "return_prob <= 0.0364" in text and "carver='carved'" in text
+    EnvConfig(grid_size=48, room_size=24.0, carver="paper", return_prob=0.0364)  # the way out
+    text = _error_text(grid_size=128, room_size=64.0, carver="centre")
+    assert "carver='centre'" in text and "grid_size <=" in text
+
+
+def test_config__carved_target_out_of_reach_of_the_step_cap_is_refused():
+    base = {"grid_size": 64, "room_size": 32.0, "carver": "carved"}
+    text = _error_text(**base, carve_max_steps=20_000)
+    assert "carver='carved'" in text and "carve_max_steps (20,000)" in text
+    # the ways out the message names are accepted
+    cap = int(re.search(r"carve_max_steps >= ([\d,]+)", text).group(1).replace(",", ""))
+    fraction = float(re.search(r"carve_fraction <= ([\d.]+)", text).group(1))
+    EnvConfig(**base, carve_max_steps=cap)
+    EnvConfig(**base, carve_max_steps=20_000, carve_fraction=fraction)
+    assert "carve_max_steps" in _error_text(**base, carve_max_steps=cap - 1000)

@@ -59,15 +59,17 @@ def test_submission__what_cannot_run_is_refused_with_the_field_named(tmp_path):
         assert detail["loc"] == ["body", "overrides", "algorithm.buffer_size"]
         assert "replay buffer" in detail["msg"] and "max_job_memory_mb=4,096" in detail["msg"]
         # grid 48 with the paper's carving burnt minutes of CPU, then failed: now refused at once
+        # (carver "auto" carves it with returns to carved cells; "paper" is the walk that cannot)
         t0 = time.perf_counter()
         r = httpx.post(f"{live.url}/jobs/train", json={"preset": "demo", "overrides": {
-            "env.grid_size": 48, "env.robot_radius": 0.05, "env.max_wheel_speed": 0.8}})  # fmt: skip
+            "env.grid_size": 48, "env.robot_radius": 0.05, "env.max_wheel_speed": 0.8,
+            "env.carver": "paper"}})  # fmt: skip
         assert r.status_code == 422 and time.perf_counter() - t0 < 10
         assert "return_prob <=" in r.text and "grid_size <=" in r.text
         # the same env through a lower return_prob is accepted
         r = httpx.post(f"{live.url}/jobs/train", json={"preset": "demo", "overrides": {
             "env.grid_size": 48, "env.robot_radius": 0.05, "env.max_wheel_speed": 0.8,
-            "env.return_prob": 0.01}})  # fmt: skip
+            "env.carver": "paper", "env.return_prob": 0.01}})  # fmt: skip
         assert r.status_code == 202, r.text
         # an eval of 10^5 episodes at grid 32 keeps every trajectory: estimated, within budget
         r = httpx.post(f"{live.url}/jobs/eval", json={"policy": "random", "episodes": 100_000})
@@ -107,7 +109,10 @@ def test_grpc__start_refusals_are_exact_and_bounded(tmp_path):
     try:
         target = f"127.0.0.1:{server.port}"
         cases = [
-            ({"grid_size": 64, "robot_radius": 0.05, "max_wheel_speed": 0.5}, "return_prob <="),
+            (
+                {"grid_size": 64, "robot_radius": 0.05, "max_wheel_speed": 0.5, "carver": "paper"},
+                "return_prob <=",
+            ),
             ({"lidar_beams": 512}, "lidar_beams=512"),
             ({"room_size": "x" * 20_000}, "start.config.room_size"),
         ]

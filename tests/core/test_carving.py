@@ -1,0 +1,36 @@
+import math
+
+import jax
+import numpy as np
+import pytest
+
+from quicknav_core.env import carving
+from quicknav_core.env.rooms import carve_bank_steps
+
+
+@pytest.mark.parametrize(("grid", "return_prob", "fraction"), [(16, 0.2, 1.0), (32, 0.05, 0.8),
+                                                                (48, 0.5, 0.3)])  # fmt: skip
+def test_expected_steps_carved__brackets_the_real_carver(grid, return_prob, fraction):
+    target = math.ceil(fraction * (grid - 2) ** 2 - 1e-9)
+    keys = jax.random.split(jax.random.PRNGKey(7), 64)
+    _, steps = carve_bank_steps(keys, grid, target, 10**8, return_prob, "carved")
+    steps = np.asarray(steps)
+    estimate = carving.expected_steps_carved(grid, return_prob, target)
+    assert 0.2 * estimate < steps.mean() < 1.5 * estimate
+    assert steps.max() <= carving.SLOWEST_ROOM_FACTOR * estimate  # what the config check allows
+
+
+def test_choose_carver__paper_while_quick_then_centre_then_carved():
+    target = lambda g: math.ceil(0.8 * (g - 2) ** 2 - 1e-9)  # noqa: E731
+    assert carving.choose_carver(16, 0.05, target(16)) == "paper"
+    assert carving.choose_carver(32, 0.05, target(32)) == "centre"
+    assert carving.choose_carver(64, 0.05, target(64)) == "carved"
+    # a lower return_prob lets the centre walk reach further: the paper walk stays longer
+    assert carving.choose_carver(24, 0.01, target(24)) == "paper"
+
+
+def test_feasible__carved_returns_reach_what_centre_returns_cannot():
+    target, cap = math.ceil(0.8 * 126**2), 1000 * 126**2
+    assert not carving.feasible(128, 0.05, target, cap, "paper")
+    assert carving.feasible(128, 0.05, target, cap, "carved")
+    assert not carving.feasible(128, 0.05, target, target, "carved")
