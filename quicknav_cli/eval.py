@@ -102,7 +102,12 @@ def eval_cmd(
         except (ValueError, FileNotFoundError) as e:
             fail(str(e))
     print_eval(result)
-    console.print(f"wrote {out_dir}/eval.json, trajectories.png, episodes.gif")
+    for b in result["by_path_length"]:
+        hi = f"{b['path_m'][1]:g}" if b["path_m"][1] is not None else "..."
+        console.print(f"  oracle path {b['path_m'][0]:g}-{hi} m: {b['episodes']} episodes, success"
+                      f" {b['success_rate']:.0%}, SPL {b['spl']:.2f}")  # fmt: skip
+    written = sorted(p.name for p in Path(out_dir).iterdir() if p.is_file())
+    console.print(f"wrote {out_dir}/: {', '.join(written)}")
 
 
 def print_eval(result) -> None:

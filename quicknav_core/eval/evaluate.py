@@ -15,6 +15,7 @@ until it reached the goal disc and l_i the shortest disc path into the goal disc
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 from collections.abc import Callable
@@ -32,8 +33,8 @@ from quicknav_core.eval.agents import Agent, PolicyAgent, agent_from_run
 from quicknav_core.eval.planning import shortest_path_length
 from quicknav_core.eval.scripted import baseline_agent
 
-__all__ = ["Agent", "Episodes", "PolicyAgent", "agent_from_run", "evaluate", "make_agent",
-           "run_episodes", "run_eval", "spl", "summarize", "wilson_interval"]  # fmt: skip
+__all__ = ["Agent", "Episodes", "PolicyAgent", "agent_from_run", "by_path_length", "evaluate",
+           "make_agent", "run_episodes", "run_eval", "spl", "summarize", "wilson_interval"]  # fmt: skip
 
 
 # --------------------------------------------------------------------------- episodes
@@ -223,11 +224,67 @@ def summarize(ep: Episodes, max_steps: int, step_length: float) -> dict[str, Any
     }
 
 
+# Difficulty bins: the oracle's shortest path to the goal disc, as fractions of the room's side
+PATH_BIN_EDGES = (0.0, 0.25, 0.5, 0.75, 1.0, math.inf)
+
+
+def by_path_length(ep: Episodes, room_size: float, max_steps: int) -> list[dict[str, Any]]:
+    """Success, its 95 % interval, SPL and steps (failures as the limit) per difficulty bin: the
+    episodes grouped by the oracle's shortest-path length (metres). Empty bins are left out."""
+    edges = [e * room_size for e in PATH_BIN_EDGES]
+    rows = []
+    for lo, hi in itertools.pairwise(edges):
+        inside = (ep.reference_length >= lo) & (ep.reference_length < hi)
+        n = int(inside.sum())
+        if n == 0:
+            continue
+        k = int(ep.success[inside].sum())
+        steps = np.where(ep.success[inside], ep.steps[inside], max_steps)
+        rows.append({
+            "path_m": [round(lo, 3), None if math.isinf(hi) else round(hi, 3)],
+            "episodes": n, "success_rate": k / n, "success_ci95": list(wilson_interval(k, n)),
+            "spl": spl(ep.success[inside], ep.path_length[inside], ep.reference_length[inside]),
+            "steps_failures_as_limit": float(np.mean(steps)),
+        })  # fmt: skip
+    return rows
+
+
+def draw_difficulty(rows: list[dict[str, Any]], path: Path, title: str = "") -> Path:
+    """Success (with its 95 % interval) and SPL against the oracle's path length, per bin."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labels = [f"{r['path_m'][0]:g}-{r['path_m'][1]:g} m" if r["path_m"][1] is not None
+              else f">= {r['path_m'][0]:g} m" for r in rows]  # fmt: skip
+    x = np.arange(len(rows))
+    success = np.array([r["success_rate"] for r in rows])
+    ci = np.array([r["success_ci95"] for r in rows]).reshape(-1, 2)
+    fig, ax = plt.subplots(figsize=(7, 4))
+    ax.errorbar(x, success, yerr=[success - ci[:, 0], ci[:, 1] - success], marker="o",
+                capsize=4, label="success rate (95 % CI)", color="tab:green")  # fmt: skip
+    ax.plot(x, [r["spl"] for r in rows], marker="s", label="SPL", color="tab:blue")
+    for xi, r in zip(x, rows, strict=True):
+        ax.annotate(f"n={r['episodes']}", (xi, 0.98), ha="center", va="top", fontsize=8, color="0.4")
+    ax.set_xticks(x, labels)
+    ax.set_ylim(0, 1.05)
+    ax.set_xlabel("oracle shortest path to the goal")
+    ax.set_title(f"{title}: by difficulty" if title else "by difficulty", fontsize=10)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="center right", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
 def evaluate(
     env_config: EnvConfig, agent: Agent, cfg: EvalConfig, out_dir: Path | None = None,
     progress: Callable[[int, int], bool | None] | None = None,
 ) -> tuple[dict[str, Any], Episodes]:  # fmt: skip
-    """Evaluate ``agent``; with ``out_dir`` write eval.json, trajectories.png and episodes.gif.
+    """Evaluate ``agent``; with ``out_dir`` write eval.json (with success and SPL per difficulty
+    bin), replay.json, trajectories.png, difficulty.png and episodes.gif.
 
     ``progress(done, total)`` after every batch of episodes may return True to stop
     (``EvalStopped``: nothing is written).
@@ -240,6 +297,7 @@ def evaluate(
         "eval_config": cfg.model_dump(mode="json"),
         "env_config": env_config.model_dump(mode="json"),
         "metrics": summarize(ep, env_config.max_steps, step_length),
+        "by_path_length": by_path_length(ep, env_config.room_size, env_config.max_steps),
         "per_episode": {
             "success": ep.success.tolist(),
             "steps": ep.steps.tolist(),
@@ -257,6 +315,7 @@ def evaluate(
             (out_dir / "replay.json").write_text(json.dumps(replay_data(ep, env_config, agent.name)))
         if cfg.pictures:
             draw_trajectories(ep, env_config, out_dir / "trajectories.png", title=agent.name)
+            draw_difficulty(result["by_path_length"], out_dir / "difficulty.png", title=agent.name)
             if cfg.gif_episodes:
                 draw_gif(ep, env_config, out_dir / "episodes.gif", title=agent.name)
     return result, ep

@@ -48,6 +48,24 @@ def test_spl_and_success__hand_made_episodes():
     assert spl(np.array([True]), np.array([1.9]), np.array([2.0])) == 1.0
 
 
+def test_by_path_length__bins_the_episodes_by_the_oracle_path(tmp_path):
+    from quicknav_core.eval.evaluate import by_path_length, draw_difficulty
+
+    # room 8 m: bins 0-2, 2-4, 4-6, 6-8, >= 8 m of oracle path; nothing falls in 4-6
+    ep = _episodes([True, False, True, True, False], [20, 300, 50, 90, 300],
+                   [1.5, 2.0, 3.5, 7.0, 9.0], [1.0, 1.5, 3.0, 6.5, 8.5])  # fmt: skip
+    rows = by_path_length(ep, room_size=8.0, max_steps=300)
+    assert [r["path_m"] for r in rows] == [[0.0, 2.0], [2.0, 4.0], [6.0, 8.0], [8.0, None]]
+    assert [r["episodes"] for r in rows] == [2, 1, 1, 1]
+    assert [r["success_rate"] for r in rows] == [0.5, 1.0, 1.0, 0.0]
+    assert rows[0]["steps_failures_as_limit"] == (20 + 300) / 2
+    assert rows[0]["spl"] == pytest.approx(spl(np.array([True, False]), np.array([1.5, 2.0]),
+                                               np.array([1.0, 1.5])))  # fmt: skip
+    lo, hi = rows[0]["success_ci95"]
+    assert lo < 0.5 < hi
+    assert draw_difficulty(rows, tmp_path / "d.png").stat().st_size > 5000
+
+
 def test_wilson_interval__known_values():
     lo, hi = wilson_interval(95, 100)
     assert lo == pytest.approx(0.8882, abs=1e-3) and hi == pytest.approx(0.9785, abs=1e-3)
@@ -150,6 +168,10 @@ def test_eval__replay_json_holds_the_picture_episodes_step_by_step(baselines, tm
     result, ep = evaluate(cfg, OracleAgent(cfg.room_size, cfg.goal_radius),
                           EvalConfig(episodes=100, seed=5, pictures=False), out_dir=tmp_path)  # fmt: skip
     assert result["per_episode"] == oracle["per_episode"]
+    bins = json.loads((tmp_path / "eval.json").read_text())["by_path_length"]
+    assert sum(b["episodes"] for b in bins) == 100
+    assert sum(b["success_rate"] * b["episodes"] for b in bins) == pytest.approx(
+        sum(oracle["per_episode"]["success"]))
     replay = json.loads((tmp_path / "replay.json").read_text())
     assert len(replay["episodes"]) == 3 and replay["grid_size"] == cfg.grid_size
     angles = np.asarray(replay["beam_angles"], np.float32)
