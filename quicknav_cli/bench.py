@@ -27,6 +27,15 @@ app = typer.Typer(
 )
 
 
+def checked_grids(grid: list[int] | None, default) -> list[int]:
+    """The --grid values (or the default), each within EnvConfig's range 4..128."""
+    grids = grid or list(default)
+    bad = [g for g in grids if not 4 <= g <= 128]
+    if bad:
+        fail(f"--grid {bad[0]}: allowed range 4..128")
+    return grids
+
+
 @app.callback()
 def bench_env(
     ctx: typer.Context,
@@ -78,10 +87,7 @@ def bench_env(
         write_outputs,
     )
 
-    grids = grid or list(DEFAULT_GRIDS)
-    bad = [g for g in grids if not 4 <= g <= 128]
-    if bad:
-        fail(f"--grid {bad[0]}: allowed range 4..128")
+    grids = checked_grids(grid, DEFAULT_GRIDS)
     if batch and min(batch) < 1:
         fail(f"--batch {min(batch)}: allowed range >= 1")
     from quicknav_core.env.lidar import LIDAR_METHODS
@@ -146,10 +152,7 @@ def bench_rooms(
     )
     from quicknav_core.env.carving import CARVERS
 
-    grids = grid or list(DEFAULT_GRIDS)
-    bad = [g for g in grids if not 4 <= g <= 128]
-    if bad:
-        fail(f"--grid {bad[0]}: allowed range 4..128")
+    grids = checked_grids(grid, DEFAULT_GRIDS)
     if carver not in ("auto", *CARVERS):
         fail(f"--carver {carver}: allowed " + ", ".join(("auto", *CARVERS)))
     cfg = RoomsBenchConfig(grids=grids, carver=carver)

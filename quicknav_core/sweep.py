@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from quicknav_core.config import TrainConfig, apply_overrides
+from quicknav_core.config.base import json_safe
 from quicknav_core.config.sweep import METRICS, ParamSpec, SweepConfig
 from quicknav_core.train.batched import shape_signature, train_batch
 
@@ -249,20 +250,9 @@ def write_trials(study, cfg: SweepConfig, out_dir: Path) -> dict[str, Any]:
                      "batch": t.user_attrs.get("batch"), "counted": t.number not in retried})  # fmt: skip
     out = {"objective": cfg.objective, "direction": cfg.resolved_direction, "trials": rows}
     tmp = out_dir / "trials.json.tmp"
-    tmp.write_text(json.dumps(_finite(out), default=float, allow_nan=False))
+    tmp.write_text(json.dumps(json_safe(out), default=float, allow_nan=False))
     os.replace(tmp, out_dir / "trials.json")
     return out
-
-
-def _finite(value: Any) -> Any:
-    """NaN and infinities as null: browsers' JSON.parse rejects them."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: _finite(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_finite(v) for v in value]
-    return value
 
 
 def write_outputs(study, cfg: SweepConfig, out_dir: Path) -> dict[str, Any]:

@@ -12,10 +12,11 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from quicknav_core.bench.env import BenchReport
 from quicknav_core.bench.machine import machine_info
 from quicknav_core.config import EnvConfig
 
@@ -47,20 +48,8 @@ class RoomsBenchConfig:
     seed: int = 0
 
 
-@dataclass
-class RoomsBenchReport:
-    config: dict[str, Any]
-    machine: dict[str, Any]
-    results: list[RoomsMeasurement] = field(default_factory=list)
-    targets: list[dict[str, Any]] = field(default_factory=list)
-
-    def to_json(self) -> dict[str, Any]:
-        return {
-            "config": self.config,
-            "machine": self.machine,
-            "results": [asdict(r) for r in self.results],
-            "targets": self.targets,
-        }
+# the same report shape as the env bench's (config, machine, results, targets)
+RoomsBenchReport = BenchReport
 
 
 def bench_grid(grid: int, cfg: RoomsBenchConfig) -> RoomsMeasurement:

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import asyncio
 import json
-import math
 from typing import Annotated
 
 import anyio
 from fastapi import APIRouter, Depends, Header, HTTPException, Request
 from fastapi.responses import StreamingResponse
 
+from quicknav_core.config.base import json_safe
 from service.api.deps import StoreDep, get_job, require_token
 from service.jobs.models import JobNotFound, StoreUnavailable
 
@@ -21,17 +21,6 @@ KEEPALIVE_S = 15.0
 POLL_S = 0.05
 OUTAGE_POLL_S = 1.0
 TERMINAL = ("succeeded", "failed", "cancelled")
-
-
-def json_safe(value):
-    """JSON without NaN/Infinity (browsers' JSON.parse rejects them): non-finite floats -> null."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: json_safe(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [json_safe(v) for v in value]
-    return value
 
 
 @router.get("/{job_id}/events")
