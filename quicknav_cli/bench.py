@@ -230,7 +230,9 @@ def bench_learning(
         list[str] | None,
         typer.Option(
             "--row",
-            help="Presets to train now (default all): paper-ppo paper-sac paper-td3 paper-mlp paper-lstm paper-gtrxl.",
+            help="Rows to train now (default all): a preset (paper-ppo paper-sac paper-td3"
+            " paper-mlp paper-lstm paper-gtrxl) for the paper's reward, or the preset plus"
+            " '-shaped' (paper-td3-shaped, ...) for potential-based shaping.",
         ),
     ] = None,
     seeds: Annotated[int, typer.Option(min=1, max=10, help="Training seeds per row.")] = 3,
@@ -246,9 +248,9 @@ def bench_learning(
     ] = Path("runs/learning"),
 ) -> None:
     """The paper's Tables 1 and 2: train with several seeds, evaluate on held-out rooms, report."""
-    from quicknav_core.bench.learning import ROWS, run_learning_bench
+    from quicknav_core.bench.learning import ROW_KEYS, run_learning_bench
 
-    known = [r.preset for r in ROWS]
+    known = list(ROW_KEYS)
     bad = [r for r in row or [] if r not in known]
     if bad:
         fail(f"--row {bad[0]!r}: allowed values are {', '.join(known)}")
@@ -257,4 +259,4 @@ def bench_learning(
         out, runs, row, seeds, scale, say=lambda m: console.print(m, highlight=False)
     )
     console.print(markdown, highlight=False, markup=False, soft_wrap=True)
-    console.print(f"wrote {out}/report.md and report.json")
+    console.print(f"wrote {out}/report.md, report.json and profiles.png")

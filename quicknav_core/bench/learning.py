@@ -12,13 +12,23 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import statistics
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from quicknav_core.config import EnvConfig, get_preset, resolve_eval, resolve_train
+
+if TYPE_CHECKING:  # pragma: no cover
+    import numpy as np
+
+
+REWARDS = {
+    "paper": "the paper's reward (sign of progress)",
+    "shaped": "potential-based shaping, Φ = -distance to goal, γ = the trainer's discount",
+}
 
 
 @dataclass(frozen=True)
@@ -29,19 +39,45 @@ class Row:
     total_steps: int
     max_minutes: float
     paper: str  # the paper's figure for this row
+    reward: str = "paper"  # a key of REWARDS
+    overrides: tuple[tuple[str, Any], ...] = ()  # extra TrainConfig overrides (dotted keys)
+
+    @property
+    def key(self) -> str:
+        """The row's name in report.json and its run folders: the preset, plus '-shaped'."""
+        return self.preset if self.reward == "paper" else f"{self.preset}-{self.reward}"
+
+    @property
+    def label(self) -> str:
+        return self.name if self.reward == "paper" else f"{self.name}, shaped reward"
+
+    def request(self, seed: int, total_steps: int) -> dict[str, Any]:
+        """The train request of one seed: the preset, the row's reward and overrides, the budget."""
+        overrides: dict[str, Any] = {"seed": seed, "total_steps": total_steps}
+        if self.reward == "shaped":
+            gamma = get_preset(self.preset).algorithm.gamma
+            overrides |= {"env.reward.progress": "potential", "env.reward.potential_gamma": gamma}
+        overrides |= dict(self.overrides)
+        return {"preset": self.preset, "overrides": overrides}
+
+
+def _both(name, table, preset, steps, minutes, paper) -> tuple[Row, Row]:
+    return (Row(name, table, preset, steps, minutes, paper),
+            Row(name, table, preset, steps, minutes, paper, reward="shaped"))  # fmt: skip
 
 
 ROWS = (
-    Row("PPO (MLP 2x128)", 1, "paper-ppo", 20_000_000, 30, "reward 96.87 ± 8.50"),
-    Row("SAC (MLP 2x128)", 1, "paper-sac", 4_000_000, 30, "reward 73.52 ± 51.59"),
-    Row("TD3 (MLP 2x128)", 1, "paper-td3", 8_000_000, 30, "reward 85.99 ± 36.22"),
+    *_both("PPO (MLP 2x128)", 1, "paper-ppo", 20_000_000, 30, "reward 96.87 ± 8.50"),
+    *_both("SAC (MLP 2x128)", 1, "paper-sac", 4_000_000, 30, "reward 73.52 ± 51.59"),
+    *_both("TD3 (MLP 2x128)", 1, "paper-td3", 8_000_000, 30, "reward 85.99 ± 36.22"),
     # Table 2 budgets: the target allows 60 min per run; the step budgets (the learning rate anneals
     # over them) keep one seed near 8-12 min on 2 cores (MLP and LSTM train at ~90-130k steps/s,
     # GTrXL at ~14k steps/s).
-    Row("PPO + MLP with memory", 2, "paper-mlp", 60_000_000, 60, "steps 214.61 ± 94.53"),
-    Row("PPO + LSTM", 2, "paper-lstm", 60_000_000, 60, "steps 126.60 ± 75.71"),
-    Row("PPO + GTrXL", 2, "paper-gtrxl", 6_000_000, 60, "steps 133.90 ± 88.94"),
+    *_both("PPO + MLP with memory", 2, "paper-mlp", 60_000_000, 60, "steps 214.61 ± 94.53"),
+    *_both("PPO + LSTM", 2, "paper-lstm", 60_000_000, 60, "steps 126.60 ± 75.71"),
+    *_both("PPO + GTrXL", 2, "paper-gtrxl", 6_000_000, 60, "steps 133.90 ± 88.94"),
 )
+ROW_KEYS = tuple(r.key for r in ROWS)
 NOTES = (
     "Configs: `quicknav presets` / `quicknav_core/config/presets.py`; each seed is the preset with "
     "`seed` = 0, 1, 2 and the row's step budget; a seed stops at its step budget or its time cap. "
@@ -69,7 +105,7 @@ EVAL_SEED = 0
 
 
 def _slug(row: Row) -> str:
-    return row.preset
+    return row.key
 
 
 def run_one(row: Row, seed: int, runs_dir: Path, scale: float = 1.0, say=print) -> dict[str, Any]:
@@ -82,9 +118,7 @@ def run_one(row: Row, seed: int, runs_dir: Path, scale: float = 1.0, say=print) 
     if eval_path.exists():
         return json.loads(eval_path.read_text())
     steps = max(int(row.total_steps * scale), get_preset(row.preset).steps_per_update)
-    cfg = resolve_train(
-        {"preset": row.preset, "overrides": {"seed": seed, "total_steps": steps}}
-    )
+    cfg = resolve_train(row.request(seed, steps))
     cap_s = row.max_minutes * 60 * scale
     started = time.perf_counter()
     elapsed_before = 0.0
@@ -95,7 +129,7 @@ def run_one(row: Row, seed: int, runs_dir: Path, scale: float = 1.0, say=print) 
     def stop(result) -> bool:
         spent = elapsed_before + time.perf_counter() - started
         marker.write_text(json.dumps({"seconds": spent}))
-        say(f"  {row.preset} s{seed}: {result.env_steps:,} steps, {spent / 60:.1f} min, "
+        say(f"  {row.key} s{seed}: {result.env_steps:,} steps, {spent / 60:.1f} min, "
             f"success {result.metrics.get('success_rate', float('nan')):.0%}")  # fmt: skip
         return spent >= cap_s
 
@@ -114,6 +148,9 @@ def run_one(row: Row, seed: int, runs_dir: Path, scale: float = 1.0, say=print) 
         "minutes": json.loads(marker.read_text())["seconds"] / 60 if marker.exists() else None,
         "stopped_by_time_cap": summary["stopped"],
         "seed": seed,
+        "total_steps": steps,
+        "time_cap_minutes": cap_s / 60,
+        "reward": row.reward,
     }
     eval_path.write_text(json.dumps(result, indent=2))
     return result
@@ -154,57 +191,64 @@ def _agg(values: list[float]) -> str:
     return f"{statistics.mean(vals):.3g} ± {statistics.stdev(vals):.2g}"
 
 
-def build_report(
-    results: dict[str, list[dict[str, Any]]], base: dict[str, dict[str, Any]], seeds: int
-) -> tuple[str, dict]:
-    """Markdown + JSON of everything finished so far, and which targets are met."""
-    lines = ["# QuickNav learning benchmark: the paper's Tables 1 and 2", "",
-             f"Each row: {seeds} training seeds, each evaluated on {EVAL_EPISODES} held-out test episodes "
-             f"(episode seed {EVAL_SEED}, deterministic actions); mean ± std across seeds.", ""]  # fmt: skip
-    data: dict[str, Any] = {"rows": {}, "baselines": {}, "targets": []}
-    for table in (1, 2):
-        oracle = base.get(f"oracle-table{table}", {}).get("metrics", {})
-        oracle_steps = oracle.get("steps_to_goal_successes", {}).get("mean")
-        lines += [f"## Table {table}" + (": goal observed" if table == 1 else ": goal hidden (lidar, pose, memory)"), "",
-                  "| row | seeds done | success | SPL | steps to goal (successes) | steps (failures = 300) | "
-                  "steps / oracle | return | collisions/ep | train min | env steps | paper |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
-        for row in ROWS:
-            if row.table != table:
-                continue
-            rs = results.get(row.preset, [])
-            ms = [r["metrics"] for r in rs]
-            steps = [m["steps_to_goal_successes"]["mean"] for m in ms]
-            ratio = [s / oracle_steps for s in steps] if oracle_steps else []
-            tr = [r.get("training", {}) for r in rs]
-            lines.append(
-                f"| {row.name} | {len(rs)}/{seeds} | {_agg([m['success_rate'] for m in ms])} | "
-                f"{_agg([m['spl'] for m in ms])} | {_agg(steps)} | "
-                f"{_agg([m['steps_to_goal_failures_as_limit']['mean'] for m in ms])} | {_agg(ratio)} | "
-                f"{_agg([m['return']['mean'] for m in ms])} | {_agg([m['collisions_per_episode'] for m in ms])} | "
-                f"{_agg([t.get('minutes') for t in tr])} | {_agg([t.get('env_steps') for t in tr])} | {row.paper} |"
-            )  # fmt: skip
-            data["rows"][row.preset] = {"name": row.name, "table": table, "paper": row.paper,
-                                        "runs": [{"metrics": m, "training": t} for m, t in zip(ms, tr, strict=True)]}  # fmt: skip
-        for policy in ("oracle", "random"):
-            m = base.get(f"{policy}-table{table}", {}).get("metrics")
-            if m:
-                data["baselines"][f"{policy}-table{table}"] = m
-                lines.append(
-                    f"| {policy} (baseline) | - | {m['success_rate']:.3g} | {m['spl']:.3g} | "
-                    f"{m['steps_to_goal_successes']['mean']:.3g} | {m['steps_to_goal_failures_as_limit']['mean']:.3g} | "
-                    f"{'1' if policy == 'oracle' else '-'} | {m['return']['mean']:.3g} | {m['collisions_per_episode']:.3g} | - | - | - |"
-                )  # fmt: skip
-        lines.append("")
-    # targets
+def episode_scores(result: dict[str, Any], max_steps: int) -> dict[str, list[float]] | None:
+    """Per-episode success, SPL and steps (failures as the limit) of one seed's eval, or None when
+    the seed was recorded before the report kept episodes."""
+    per = result.get("per_episode")
+    if not per:
+        return None
+    if "spl" in per:  # already reduced (a run kept in report.json)
+        return {k: list(per[k]) for k in ("success", "spl", "steps")}
+    success = [bool(s) for s in per["success"]]
+    spl = [float(s) * r / max(p, r, 1e-9)
+           for s, p, r in zip(success, per["path_length"], per["reference_length"], strict=True)]  # fmt: skip
+    steps = [int(n) if s else max_steps for s, n in zip(success, per["steps"], strict=True)]
+    return {"success": [int(s) for s in success], "spl": [round(x, 4) for x in spl], "steps": steps}
+
+
+def _matrix(runs: list[dict[str, Any]], field: str) -> np.ndarray | None:
+    """(seeds, episodes) scores of a row, or None unless every seed kept the same episodes."""
+    import numpy as np
+
+    per = [r.get("per_episode") for r in runs]
+    if not per or any(p is None for p in per) or len({len(p[field]) for p in per}) != 1:
+        return None
+    return np.asarray([p[field] for p in per], dtype=np.float64)
+
+
+def _ci(point: float, lo: float, hi: float, fmt: str = ".3f") -> str:
+    if math.isnan(lo):
+        return f"{point:{fmt}}"
+    return f"{point:{fmt}} [{lo:{fmt}}, {hi:{fmt}}]"
+
+
+def aggregate_row(runs: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """Mean and IQM with stratified-bootstrap 95 % intervals over seeds x episodes, or None."""
+    from quicknav_core.eval.aggregate import interval, iqm, mean
+
+    success, spl, steps = (_matrix(runs, f) for f in ("success", "spl", "steps"))
+    if success is None or spl is None or steps is None:
+        return None
+    out: dict[str, Any] = {"seeds": int(success.shape[0]), "episodes": int(success.shape[1])}
+    for name, scores, statistic in (("success_mean", success, mean), ("spl_mean", spl, mean),
+                                    ("spl_iqm", spl, iqm), ("steps_iqm", steps, iqm),
+                                    ("steps_mean", steps, mean)):  # fmt: skip
+        point, lo, hi = interval(scores, statistic)
+        out[name] = {"point": point, "ci95": [lo, hi]}
+    return out
+
+
+def _targets(results: dict[str, list[dict[str, Any]]], seeds: int) -> list[dict[str, Any]]:
+    """The issue's targets: the paper's two, then each algorithm/network at >= 90 % success."""
+    targets = []
     ppo = [r["metrics"] for r in results.get("paper-ppo", [])]
     if ppo:
         succ = statistics.mean(m["success_rate"] for m in ppo)
         spl_ = statistics.mean(m["spl"] for m in ppo)
         mins = [r.get("training", {}).get("minutes") or 0 for r in results["paper-ppo"]]
         met = succ >= 0.95 and spl_ >= 0.80 and max(mins) <= 30
-        data["targets"].append({"target": "Table 1 PPO: success >= 95%, SPL >= 0.80, <= 30 min",
-                                "measured": {"success": succ, "spl": spl_, "max_minutes": max(mins)}, "met": met})  # fmt: skip
+        targets.append({"target": "Table 1 PPO: success >= 95%, SPL >= 0.80, <= 30 min",
+                        "measured": {"success": succ, "spl": spl_, "max_minutes": max(mins)}, "met": met})  # fmt: skip
     best = None
     for preset in ("paper-mlp", "paper-lstm", "paper-gtrxl"):
         ms = [r["metrics"] for r in results.get(preset, [])]
@@ -215,23 +259,135 @@ def build_report(
             if best is None or steps < best[1]:
                 best = (preset, steps, succ, mins)
     if best:
-        data["targets"].append({"target": "Table 2 best memory network: <= 100 steps (failures = limit), success >= 90%, <= 60 min",
-                                "measured": {"preset": best[0], "steps": best[1], "success": best[2], "max_minutes": best[3]},
-                                "met": best[1] <= 100 and best[2] >= 0.9 and best[3] <= 60})  # fmt: skip
+        targets.append({"target": "Table 2 best memory network: <= 100 steps (failures = limit), success >= 90%, <= 60 min",
+                        "measured": {"preset": best[0], "steps": best[1], "success": best[2], "max_minutes": best[3]},
+                        "met": best[1] <= 100 and best[2] >= 0.9 and best[3] <= 60})  # fmt: skip
+    # Every algorithm (Table 1) and memory network (Table 2): some row of it, under either reward,
+    # with all seeds done, mean success >= 90 % (Table 2 also <= 100 steps, failures = limit).
+    for name, table, preset in ((r.name, r.table, r.preset) for r in ROWS if r.reward == "paper"):
+        candidates = []
+        for row in ROWS:
+            runs = results.get(row.key, [])
+            if row.name != name or len(runs) < seeds:
+                continue
+            succ = statistics.mean(r["metrics"]["success_rate"] for r in runs)
+            steps = statistics.mean(r["metrics"]["steps_to_goal_failures_as_limit"]["mean"] for r in runs)
+            ok = succ >= 0.9 and (table == 1 or steps <= 100)
+            candidates.append((ok, succ, -steps, row.key, steps))
+        rule = "success >= 90%" + (", <= 100 steps (failures = limit)" if table == 2 else "")
+        t = {"target": f"{name}: a row with {seeds} seeds, {rule}", "met": False, "measured": {}}
+        if candidates:
+            ok, succ, _, key, steps = max(candidates)
+            t["met"] = ok
+            t["measured"] = {"row": key, "success": succ} | ({"steps": steps} if table == 2 else {})
+        else:
+            t["measured"] = {"row": f"no row of {preset} with {seeds} seeds yet"}
+        targets.append(t)
+    return targets
+
+
+def build_report(
+    results: dict[str, list[dict[str, Any]]], base: dict[str, dict[str, Any]], seeds: int,
+    profile_path: Path | None = None,
+) -> tuple[str, dict]:  # fmt: skip
+    """Markdown + JSON of everything finished so far, and which targets are met; with
+    ``profile_path``, also the performance-profile plot of the rows that kept their episodes."""
+    lines = ["# QuickNav learning benchmark: the paper's Tables 1 and 2", "",
+             f"Each row: {seeds} training seeds, each evaluated on {EVAL_EPISODES} held-out test episodes "
+             f"(episode seed {EVAL_SEED}, deterministic actions); mean ± std across seeds. "
+             "Rewards: 'paper' = " + REWARDS["paper"] + "; 'shaped' = " + REWARDS["shaped"] + ".", ""]  # fmt: skip
+    data: dict[str, Any] = {"rows": {}, "baselines": {}, "targets": [], "rewards": REWARDS}
+    agg_lines: list[str] = []
+    panels = []
+    for table in (1, 2):
+        oracle = base.get(f"oracle-table{table}", {}).get("metrics", {})
+        oracle_steps = oracle.get("steps_to_goal_successes", {}).get("mean")
+        lines += [f"## Table {table}" + (": goal observed" if table == 1 else ": goal hidden (lidar, pose, memory)"), "",
+                  "| row | reward | seeds done | success | SPL | steps to goal (successes) | steps (failures = 300) | "
+                  "steps / oracle | return | collisions/ep | train min | env steps | paper |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+        agg_lines += [f"### Table {table}", "",
+                      "| row | reward | seeds x episodes | success: mean [95% CI] | SPL: IQM [95% CI] | "
+                      "SPL: mean [95% CI] | steps (failures = 300): IQM [95% CI] |",
+                      "|---|---|---|---|---|---|---|"]  # fmt: skip
+        profile_rows = []
+        for row in ROWS:
+            if row.table != table:
+                continue
+            rs = results.get(row.key, [])
+            ms = [r["metrics"] for r in rs]
+            steps = [m["steps_to_goal_successes"]["mean"] for m in ms]
+            ratio = [s / oracle_steps for s in steps] if oracle_steps else []
+            tr = [r.get("training", {}) for r in rs]
+            lines.append(
+                f"| {row.label} | {row.reward} | {len(rs)}/{seeds} | {_agg([m['success_rate'] for m in ms])} | "
+                f"{_agg([m['spl'] for m in ms])} | {_agg(steps)} | "
+                f"{_agg([m['steps_to_goal_failures_as_limit']['mean'] for m in ms])} | {_agg(ratio)} | "
+                f"{_agg([m['return']['mean'] for m in ms])} | {_agg([m['collisions_per_episode'] for m in ms])} | "
+                f"{_agg([t.get('minutes') for t in tr])} | {_agg([t.get('env_steps') for t in tr])} | "
+                f"{row.paper if row.reward == 'paper' else '-'} |"
+            )  # fmt: skip
+            max_steps = get_preset(row.preset).env.max_steps
+            runs_out = []
+            for r in rs:
+                kept = {"metrics": r["metrics"], "training": r.get("training", {})}
+                per = episode_scores(r, max_steps)
+                if per is not None:
+                    kept["per_episode"] = per
+                runs_out.append(kept)
+            agg = aggregate_row(runs_out) if runs_out else None
+            data["rows"][row.key] = {"name": row.label, "table": table, "preset": row.preset,
+                                     "reward": row.reward, "paper": row.paper,
+                                     "aggregate": agg, "runs": runs_out}  # fmt: skip
+            if agg:
+                agg_lines.append(
+                    f"| {row.label} | {row.reward} | {agg['seeds']} x {agg['episodes']} | "
+                    f"{_ci(agg['success_mean']['point'], *agg['success_mean']['ci95'])} | "
+                    f"{_ci(agg['spl_iqm']['point'], *agg['spl_iqm']['ci95'])} | "
+                    f"{_ci(agg['spl_mean']['point'], *agg['spl_mean']['ci95'])} | "
+                    f"{_ci(agg['steps_iqm']['point'], *agg['steps_iqm']['ci95'], fmt='.1f')} |"
+                )  # fmt: skip
+                profile_rows.append((f"{row.label}", _matrix(runs_out, "spl"), row.reward != "paper"))
+            elif rs:
+                agg_lines.append(f"| {row.label} | {row.reward} | - | n/a: these seeds were recorded "
+                                 "before the report kept per-episode scores | | | |")  # fmt: skip
+        for policy in ("oracle", "random"):
+            m = base.get(f"{policy}-table{table}", {}).get("metrics")
+            if m:
+                data["baselines"][f"{policy}-table{table}"] = m
+                lines.append(
+                    f"| {policy} (baseline) | paper | - | {m['success_rate']:.3g} | {m['spl']:.3g} | "
+                    f"{m['steps_to_goal_successes']['mean']:.3g} | {m['steps_to_goal_failures_as_limit']['mean']:.3g} | "
+                    f"{'1' if policy == 'oracle' else '-'} | {m['return']['mean']:.3g} | {m['collisions_per_episode']:.3g} | - | - | - |"
+                )  # fmt: skip
+        lines.append("")
+        agg_lines.append("")
+        panels.append((f"Table {table}" + (": goal observed" if table == 1 else ": goal hidden"), profile_rows))
+    lines += ["## Aggregates over seeds x episodes (rliable protocol)", "",
+              "Point estimates over all seeds x held-out episodes pooled; 95 % intervals from the stratified "
+              "bootstrap (each episode a stratum, seeds resampled within it; 2,000 resamples, percentile "
+              "intervals; `scipy.stats.bootstrap`, `quicknav_core/eval/aggregate.py`). IQM = mean of the middle "
+              "50 % of scores. Success is 0/1 per episode, so it is given as a mean (its IQM would only say "
+              "whether more than 75 % succeeded).", ""]  # fmt: skip
+    lines += agg_lines
+    if profile_path is not None:
+        from quicknav_core.eval.aggregate import draw_profiles
+
+        draw_profiles(panels, profile_path)
+        lines += [f"Performance profiles (SPL): `{profile_path.name}`.", ""]
+    data["targets"] = _targets(results, seeds)
     lines += ["## Targets", ""]
     for t in data["targets"]:
         shown = ", ".join(
             f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in t["measured"].items()
         )
         lines.append(f"- {t['target']}: {'MET' if t['met'] else 'NOT met'} ({shown})")
-    if not data["targets"]:
-        lines.append("- no row finished yet")
     machines: dict[str, list[str]] = {}
     for row in ROWS:
-        for run in results.get(row.preset, []):
+        for run in results.get(row.key, []):
             seed = (run.get("training") or {}).get("seed")
             where = (run.get("training") or {}).get("machine") or "machine not recorded"
-            machines.setdefault(where, []).append(f"{row.preset} s{seed}")
+            machines.setdefault(where, []).append(f"{row.key} s{seed}")
     lines += ["", "## Machines (train minutes compare only within one machine)", ""]
     lines += [f"- {where}: {', '.join(runs)}" for where, runs in machines.items()]
     lines += ["", "## Notes", ""] + [f"- {note}" for note in NOTES]
@@ -239,9 +395,22 @@ def build_report(
     return "\n".join(lines) + "\n", data
 
 
+def dump_report(data: dict[str, Any]) -> str:
+    """report.json text: indented, but lists of numbers (per-episode scores) on one line each."""
+
+    def one_line(m: re.Match) -> str:
+        try:
+            return json.dumps(json.loads(m.group(0)))
+        except ValueError:  # not a JSON list after all (brackets inside a string)
+            return m.group(0)
+
+    return re.sub(r"\[[-\s\d.,eE+nulltruefals]*\]", one_line, json.dumps(data, indent=2)) + "\n"
+
+
 def run_learning_bench(out_dir: Path, runs_dir: Path, rows: list[str] | None, seeds: int = 3,
                        scale: float = 1.0, say=print) -> tuple[str, dict]:  # fmt: skip
-    """Train/evaluate what is missing, then write report.md and report.json into ``out_dir``."""
+    """Train/evaluate what is missing, then write report.md, report.json and profiles.png into
+    ``out_dir``. ``rows``: row keys (``ROW_KEYS``) to train now; None = all."""
     out_dir.mkdir(parents=True, exist_ok=True)
     runs_dir.mkdir(parents=True, exist_ok=True)
     say("baselines (oracle, random)")
@@ -251,22 +420,21 @@ def run_learning_bench(out_dir: Path, runs_dir: Path, rows: list[str] | None, se
     kept: dict[tuple[str, int], dict[str, Any]] = {}
     previous = out_dir / "report.json"
     if previous.exists():
-        for preset, row_data in json.loads(previous.read_text()).get("rows", {}).items():
+        for key, row_data in json.loads(previous.read_text()).get("rows", {}).items():
             for run in row_data.get("runs", []):
                 seed = (run.get("training") or {}).get("seed")
                 if seed is not None:
-                    kept[(preset, int(seed))] = run
+                    kept[(key, int(seed))] = run
     # Until a row is reached, the report shows what was kept for it, so a report written mid-run
     # (after every seed) never drops a finished seed.
     results: dict[str, list[dict[str, Any]]] = {
-        row.preset: [kept[(row.preset, s)] for s in range(seeds) if (row.preset, s) in kept]
-        for row in ROWS
+        row.key: [kept[(row.key, s)] for s in range(seeds) if (row.key, s) in kept] for row in ROWS
     }
 
     def write() -> None:
-        markdown, data = build_report(results, base, seeds)
+        markdown, data = build_report(results, base, seeds, out_dir / "profiles.png")
         (out_dir / "report.md").write_text(markdown)
-        (out_dir / "report.json").write_text(json.dumps(data, indent=2))
+        (out_dir / "report.json").write_text(dump_report(data))
 
     for row in ROWS:
         done: list[dict[str, Any]] = []
@@ -274,15 +442,15 @@ def run_learning_bench(out_dir: Path, runs_dir: Path, rows: list[str] | None, se
             path = runs_dir / f"{_slug(row)}-s{seed}" / "eval" / "eval.json"
             if path.exists():
                 done.append(json.loads(path.read_text()))
-            elif (row.preset, seed) in kept:
-                done.append(kept[(row.preset, seed)])
-            elif not rows or row.preset in rows:
-                say(f"{row.name}, seed {seed}")
+            elif (row.key, seed) in kept:
+                done.append(kept[(row.key, seed)])
+            elif not rows or row.key in rows:
+                say(f"{row.label}, seed {seed}")
                 done.append(run_one(row, seed, runs_dir, scale, say))
-                results[row.preset] = done + [
-                    kept[(row.preset, s)] for s in range(seed + 1, seeds) if (row.preset, s) in kept
+                results[row.key] = done + [
+                    kept[(row.key, s)] for s in range(seed + 1, seeds) if (row.key, s) in kept
                 ]
                 write()
-        results[row.preset] = done
+        results[row.key] = done
     write()
     return build_report(results, base, seeds)

@@ -34,7 +34,7 @@ def test_bench_learning__keeps_committed_seeds_without_their_run_folders(tmp_pat
     markdown, data = run_learning_bench(out, runs, rows=["none-selected"], seeds=3)
     runs_ppo = data["rows"]["paper-ppo"]["runs"]
     assert [r["training"]["seed"] for r in runs_ppo] == [0, 1, 2]
-    assert "| PPO (MLP 2x128) | 3/3 |" in markdown
+    assert "| PPO (MLP 2x128) | paper | 3/3 |" in markdown
     target = next(t for t in data["targets"] if "PPO" in t["target"])
     assert target["met"]
     # nothing was trained: no run folder appeared

@@ -1,0 +1,130 @@
+"""Aggregate scores over seeds x episodes the way rliable does (Agarwal et al., 2021).
+
+A row of the learning benchmark is a score matrix: one line per training seed, one column per
+held-out episode (the same episodes for every seed: the test bank with a fixed episode seed). Its
+point estimates are the mean and the interquartile mean (IQM, the mean of the middle 50 % of all
+scores) and its 95 % intervals come from the *stratified* bootstrap: each episode is a stratum and
+the seeds are resampled with replacement inside it, so every resample keeps every episode. The
+resampling is SciPy's ``scipy.stats.bootstrap`` (one sample per episode, ``paired=False``,
+percentile intervals as in rliable); nothing here draws resamples by hand.
+
+``performance_profile`` gives, for thresholds τ, the fraction of (seed, episode) scores above τ
+with the same stratified intervals; ``draw_profiles`` plots them for several rows.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import numpy as np
+from scipy import stats
+
+CONFIDENCE = 0.95
+RESAMPLES = 2000
+
+
+def iqm(x: np.ndarray, axis: int = -1) -> np.ndarray:
+    """Interquartile mean: the mean of the scores between the 25th and 75th percentiles."""
+    return stats.trim_mean(x, 0.25, axis=axis)
+
+
+def mean(x: np.ndarray, axis: int = -1) -> np.ndarray:
+    return np.mean(x, axis=axis)
+
+
+def _pooled(statistic: Callable[..., np.ndarray]) -> Callable[..., np.ndarray]:
+    """A statistic of all strata pooled, in the form ``scipy.stats.bootstrap`` calls it."""
+
+    def pooled(*strata: np.ndarray, axis: int = -1) -> np.ndarray:
+        return statistic(np.concatenate(strata, axis=axis), axis=axis)
+
+    return pooled
+
+
+def interval(
+    scores: np.ndarray,
+    statistic: Callable[..., np.ndarray] = iqm,
+    resamples: int = RESAMPLES,
+    seed: int = 0,
+) -> tuple[float, float, float]:
+    """(point estimate, low, high) of ``statistic`` over a (seeds, episodes) score matrix, with a
+    95 % stratified-bootstrap interval (episodes are the strata, seeds are resampled).
+
+    With one seed there is nothing to resample inside a stratum: the interval is (nan, nan)."""
+    scores = np.asarray(scores, dtype=np.float64)
+    if scores.ndim != 2:
+        raise ValueError(f"scores must be (seeds, episodes), got shape {scores.shape}")
+    point = float(statistic(scores.reshape(-1), axis=-1))
+    if scores.shape[0] < 2:
+        return point, float("nan"), float("nan")
+    if np.all(scores == scores.flat[0]):  # every resample is the same matrix
+        return point, point, point
+    res = stats.bootstrap(
+        tuple(scores.T), _pooled(statistic), n_resamples=resamples, paired=False,
+        vectorized=True, confidence_level=CONFIDENCE, method="percentile",
+        rng=np.random.default_rng(seed),
+    )  # fmt: skip
+    return point, float(res.confidence_interval.low), float(res.confidence_interval.high)
+
+
+def performance_profile(
+    scores: np.ndarray, taus: np.ndarray, resamples: int = RESAMPLES, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Fraction of scores > τ for each τ, with stratified-bootstrap 95 % bands (nan with one seed)."""
+    scores = np.asarray(scores, dtype=np.float64)
+    taus = np.asarray(taus, dtype=np.float64)
+
+    def above(x: np.ndarray, axis: int = -1) -> np.ndarray:
+        x = np.moveaxis(x, axis, -1)
+        return np.moveaxis((x[..., None, :] > taus[:, None]).mean(-1), -1, 0)
+
+    point = above(scores.reshape(-1))
+    if scores.shape[0] < 2 or np.all(scores == scores.flat[0]):
+        band = point if scores.shape[0] >= 2 else np.full_like(point, np.nan)
+        return point, band, band
+    res = stats.bootstrap(
+        tuple(scores.T), _pooled(above), n_resamples=resamples, paired=False, vectorized=True,
+        confidence_level=CONFIDENCE, method="percentile", rng=np.random.default_rng(seed),
+    )  # fmt: skip
+    return point, np.asarray(res.confidence_interval.low), np.asarray(res.confidence_interval.high)
+
+
+def draw_profiles(
+    panels: Sequence[tuple[str, Sequence[tuple[str, np.ndarray, bool]]]],
+    path: Path,
+    xlabel: str = "SPL threshold τ",
+) -> Path:
+    """One panel per (title, rows); a row is (label, (seeds, episodes) scores in [0, 1], dashed).
+    Each curve is the fraction of runs x episodes with a score above τ, its band the 95 % interval."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    taus = np.linspace(0.0, 1.0, 101)
+    fig, axes = plt.subplots(1, len(panels), figsize=(6.2 * len(panels), 4.4), squeeze=False)
+    for ax, (title, rows) in zip(axes[0], panels, strict=True):
+        for i, (label, scores, dashed) in enumerate(rows):
+            point, lo, hi = performance_profile(scores, taus)
+            colour = f"C{i % 10}"
+            ax.plot(taus, point, color=colour, linestyle="--" if dashed else "-",
+                    label=f"{label} ({np.asarray(scores).shape[0]} seeds)")  # fmt: skip
+            if not np.isnan(lo).all():
+                ax.fill_between(taus, lo, hi, color=colour, alpha=0.15, linewidth=0)
+        ax.set_title(title)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel("fraction of seeds x episodes with score > τ")
+        ax.set_xlim(0, 1)
+        ax.set_ylim(0, 1.02)
+        ax.grid(alpha=0.3)
+        if rows:
+            ax.legend(fontsize=7, loc="lower left")
+        else:
+            ax.text(0.5, 0.5, "no row with per-episode scores yet", ha="center", va="center")
+    fig.suptitle("Performance profiles (held-out test bank; bands: stratified bootstrap 95 %)")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
