@@ -29,6 +29,7 @@ from quicknav_core.config.resolve import (
 from quicknav_core.config.sweep import BUILTIN_SPACES, METRICS, ParamSpec, SweepConfig
 from quicknav_core.config.train import (
     AlgorithmConfig,
+    CurriculumConfig,
     GTrXLNetwork,
     LSTMNetwork,
     MLPNetwork,
@@ -47,6 +48,7 @@ __all__ = [
     "TRACED",
     "AlgorithmConfig",
     "ConfigError",
+    "CurriculumConfig",
     "EnvConfig",
     "EvalConfig",
     "EvalRequest",

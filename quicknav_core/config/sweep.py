@@ -150,6 +150,11 @@ class SweepConfig(StrictModel):
 
     @model_validator(mode="after")
     def _check_space(self) -> SweepConfig:
+        if self.base.curriculum.enabled:
+            raise ValueError(
+                "base.curriculum.enabled=true: sweep trials train without the curriculum (trials"
+                " that share shapes run side by side in one program); allowed: false"
+            )
         for name, spec in self.space.items():
             try:
                 override_data(self.base, {name: spec.probe()})

@@ -6,6 +6,7 @@ trials that differ only in them train side by side (``quicknav_core.train.batche
 
 from __future__ import annotations
 
+import itertools
 from typing import Annotated, Literal
 
 from pydantic import Field, model_validator
@@ -124,6 +125,39 @@ class TD3Config(StrictModel):
 AlgorithmConfig = Annotated[PPOConfig | SACConfig | TD3Config, Field(discriminator="name")]
 
 
+class CurriculumConfig(StrictModel):
+    """Training episodes from short oracle paths to long ones.
+
+    At the start of the run a pool of ``episodes_per_room`` episodes (start cell, goal cell) is
+    drawn for every room of the train bank by the env's own spawn rule, and the oracle planner
+    measures each one's shortest path (on the cell grid). Level i trains only on episodes whose
+    path is shorter than ``levels[i]`` x the room's side; after a chunk whose training success is
+    at least ``promote_at`` the next level opens; past the last level every pool episode is used.
+    The eval banks never use the pool.
+    """
+
+    enabled: bool = Field(False, description="train from short paths to long ones")
+    levels: tuple[float, ...] = Field(
+        (0.25, 0.5, 0.75), min_length=1, max_length=16,
+        description="path-length limits of the levels before the full pool, as fractions of the"
+        " room's side (increasing)",
+    )  # fmt: skip
+    promote_at: float = Field(
+        0.8, gt=0.0, le=1.0, description="training success of a chunk that opens the next level"
+    )
+    episodes_per_room: int = Field(32, ge=1, le=1024, description="pool episodes drawn per room")
+
+    @model_validator(mode="after")
+    def _levels(self) -> CurriculumConfig:
+        for i, (a, b) in enumerate(itertools.pairwise(self.levels)):
+            if not b > a:
+                raise ValueError(f"levels[{i + 1}]={b} must be greater than levels[{i}]={a}")
+        for i, v in enumerate(self.levels):
+            if not 0.0 < v <= 10.0:
+                raise ValueError(f"levels[{i}]={v}: allowed range (0, 10] (fractions of the room side)")
+        return self
+
+
 class TrainConfig(StrictModel):
     """A whole training run: environment, algorithm, network, budget and seed."""
 
@@ -136,6 +170,7 @@ class TrainConfig(StrictModel):
     chunk_steps: int = Field(
         50_000, ge=1, le=1_000_000_000, description="env steps per jit-compiled chunk (progress)"
     )
+    curriculum: CurriculumConfig = Field(default_factory=CurriculumConfig)
     devices: Annotated[int, Field(ge=1, le=MAX_DEVICES)] | Literal["all"] = Field(
         1,
         description="local JAX devices the run spans, data parallel: the env batch is split over"

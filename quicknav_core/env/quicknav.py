@@ -206,6 +206,8 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         # One PRNG call for everything a reset draws (the reset runs every step under vmap).
         u = uniform_from_bits(hash_key_bits(key, 5 + k))
         u_room, u_start, jitter_u, u_head, u_goal = u[0], u[1], u[2:4], u[4], u[5:]
+        if params.pool_room is not None:
+            return self._spawn_from_pool(params, u_room, jitter_u, u_head)
         n_rooms = params.rooms.shape[0]
         room = jnp.minimum(jnp.floor(u_room * n_rooms).astype(jnp.int32), n_rooms - 1)
         n_free = params.num_free[room]
@@ -221,6 +223,23 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         cand = params.free_cells[room, j]
         cand_xy = (jnp.stack([cand % g, cand // g], axis=-1).astype(jnp.float32) + 0.5) * cell
         goal = cand_xy[jnp.argmax(jnp.sum((cand_xy - pos) ** 2, axis=-1))]
+        theta = (2.0 * u_head - 1.0) * jnp.pi
+        return self._episode_start(
+            pos, theta, goal, params.room_col_bits[room], params.room_row_bits[room], room, start_rc
+        )
+
+    def _spawn_from_pool(self, params: EnvParams, u_pick, jitter_u, u_head) -> EnvState:
+        """A curriculum episode: one of the pool's first ``pool_count`` (room, start, goal) cells,
+        the start jittered and the heading drawn as in ``spawn``."""
+        g = self.grid_size
+        cell = params.room_size / g
+        count = jnp.clip(jnp.asarray(params.pool_count, jnp.int32), 1, params.pool_room.shape[0])
+        i = jnp.minimum(jnp.floor(u_pick * count).astype(jnp.int32), count - 1)
+        room, start, goal_cell = params.pool_room[i], params.pool_start[i], params.pool_goal[i]
+        start_rc = jnp.stack([start // g, start % g])
+        slack = jnp.maximum(0.5 * cell - params.robot_radius, 0.0)
+        pos = (start_rc[::-1].astype(jnp.float32) + 0.5) * cell + (2.0 * jitter_u - 1.0) * slack
+        goal = (jnp.stack([goal_cell % g, goal_cell // g]).astype(jnp.float32) + 0.5) * cell
         theta = (2.0 * u_head - 1.0) * jnp.pi
         return self._episode_start(
             pos, theta, goal, params.room_col_bits[room], params.room_row_bits[room], room, start_rc

@@ -75,6 +75,7 @@ def summarize(stats: EpisodeStats) -> dict[str, float]:
 class StatsEnvState:
     env_state: Any
     stats: EpisodeStats
+    pool_count: Any = 0  # curriculum: episodes of the pool resets draw from (see env.curriculum)
 
 
 class StatsWrapper(environment.Environment):
@@ -96,15 +97,19 @@ class StatsWrapper(environment.Environment):
 
     def reset(self, key, params=None):
         obs, state = self.env.reset(key, params)
-        return obs, StatsEnvState(state, EpisodeStats.zeros())
+        count = jnp.int32(0 if params is None else params.pool_count)
+        return obs, StatsEnvState(state, EpisodeStats.zeros(), count)
 
     def reset_env(self, key, params):
         return self.reset(key, params)
 
     def step(self, key, state: StatsEnvState, action, params=None):
+        if params is not None and params.pool_room is not None:
+            # the curriculum's level travels in the state, so it changes without a recompile
+            params = params.replace(pool_count=state.pool_count)
         obs, env_state, reward, done, info = self.env.step(key, state.env_state, action, params)
         stats = state.stats.record(reward, done, info["goal_reached"], info["collision"])
-        return obs, StatsEnvState(env_state, stats), reward, done, info
+        return obs, StatsEnvState(env_state, stats, state.pool_count), reward, done, info
 
     def observation_space(self, params=None):
         return self.env.observation_space(params)

@@ -147,6 +147,13 @@ class Trainer:
                      else None)  # fmt: skip
         # nothing here reads the final observations: do not pay a second lidar cast for them
         self.env, self.env_params = config.env.model_copy(update={"final_obs": False}).build("train")
+        self.pool = None
+        if config.curriculum.enabled:
+            from quicknav_core.env.curriculum import first_level, make_pool, with_pool
+
+            self.pool = make_pool(self.env_params, config.env, config.curriculum, config.seed)
+            start = self.pool.level_counts[first_level(self.pool)]
+            self.env_params = with_pool(self.env_params, self.pool, start)
         updates = max(1, math.ceil(config.total_steps / config.steps_per_update))
         self.updates_per_chunk = min(config.updates_per_chunk, updates)
         unit_cap = math.ceil(UNIT_STEPS / config.steps_per_update)
@@ -195,6 +202,31 @@ class Trainer:
 
     def policy(self, state) -> Policy:
         raise NotImplementedError
+
+    def pool_count(self, state) -> int:
+        """Curriculum: the episodes of the pool in use (the level), read from the state."""
+        raise NotImplementedError
+
+    def with_pool_count(self, state, count: int) -> Any:
+        raise NotImplementedError
+
+    def curriculum(self, state, metrics: dict[str, float]) -> tuple[Any, dict[str, float]]:
+        """After a chunk: record the level it trained at and open the next one when the chunk's
+        training success reached ``curriculum.promote_at``. The level lives in the state (it is
+        checkpointed, and changing it recompiles nothing)."""
+        if self.pool is None:
+            return state, metrics
+        level = self.pool.level_of(self.pool_count(state))
+        metrics = {**metrics, "curriculum_level": float(level),
+                   "curriculum_max_path": self.pool.max_length(level)}  # fmt: skip
+        success = metrics.get("success_rate", float("nan"))
+        last = len(self.pool.level_counts) - 1
+        if level < last and success >= self.config.curriculum.promote_at:
+            nxt = level + 1
+            while nxt < last and self.pool.level_counts[nxt] == self.pool.level_counts[level]:
+                nxt += 1  # a level that adds no episode is skipped
+            state = self.place(self.with_pool_count(state, self.pool.level_counts[nxt]))
+        return state, metrics
 
     def to_bytes(self, state) -> bytes:
         return serialization.to_bytes(jax.device_get(state))
@@ -287,10 +319,17 @@ class RecurrentPPOTrainer(Trainer):
         out = _mean_of_units(units)
         out.update(summarize(state.stats))
         state = state.replace(stats=self._clear(state.stats))
-        return self.place(state), out  # (the cleared totals may come back laid out otherwise)
+        # (the cleared totals may come back laid out otherwise: place again)
+        return self.curriculum(self.place(state), out)
 
     def env_steps(self, state) -> int:
         return int(state.env_steps)
+
+    def pool_count(self, state) -> int:
+        return int(state.env_params.pool_count)
+
+    def with_pool_count(self, state, count: int):
+        return state.replace(env_params=state.env_params.replace(pool_count=jnp.int32(count)))
 
     def policy(self, state) -> Policy:
         return Policy("recurrent", self.network, state.params)
@@ -409,10 +448,18 @@ class RejaxTrainer(Trainer):
     def finish_chunk(self, state, units):
         out = summarize(state.env_state.stats)
         env_state = state.env_state.replace(stats=self._clear(state.env_state.stats))
-        return self.place(state.replace(env_state=env_state)), out
+        return self.curriculum(self.place(state.replace(env_state=env_state)), out)
 
     def env_steps(self, state) -> int:
         return int(state.global_step)
+
+    def pool_count(self, state) -> int:
+        return int(state.env_state.pool_count[0])
+
+    def with_pool_count(self, state, count: int):
+        env_state = state.env_state
+        pool = jnp.full_like(env_state.pool_count, count)
+        return state.replace(env_state=env_state.replace(pool_count=pool))
 
     def policy(self, state) -> Policy:
         return Policy(self.kind, self.algo.actor, state.actor_ts.params)

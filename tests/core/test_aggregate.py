@@ -70,7 +70,7 @@ def _run(seed: int, success: list[int], steps: list[int], spl_ratio: float) -> d
     metrics = {
         "episodes": n, "success_rate": sum(success) / n, "success_ci95": [0.0, 1.0],
         "steps_to_goal_successes": {"mean": 60.0, "std": 5.0},
-        "steps_to_goal_failures_as_limit": {"mean": float(np.mean([s if k else 300 for s, k in zip(steps, success)])), "std": 9.0},
+        "steps_to_goal_failures_as_limit": {"mean": float(np.mean([s if k else 300 for s, k in zip(steps, success, strict=False)])), "std": 9.0},
         "return": {"mean": 90.0, "std": 3.0}, "collisions_per_episode": 0.5, "timeout_rate": 0.0,
         "spl": 0.9, "path_length_successes": {"mean": 5.0, "std": 1.0},
         "reference_length": {"mean": 5.0, "std": 1.0}, "steps_lower_bound": {"mean": 50.0, "std": 1.0},
