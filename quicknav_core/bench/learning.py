@@ -268,7 +268,7 @@ def _targets(results: dict[str, list[dict[str, Any]]], seeds: int) -> list[dict[
                         "met": best[1] <= 100 and best[2] >= 0.9 and best[3] <= 60})  # fmt: skip
     # Every algorithm (Table 1) and memory network (Table 2): some row of it, under either reward,
     # with all seeds done, mean success >= 90 % (Table 2 also <= 100 steps, failures = limit).
-    for name, table, preset in ((r.name, r.table, r.preset) for r in ROWS if r.reward == "paper"):
+    for name, table, preset in ((r.name, r.table, r.preset) for r in ROWS if r.reward == "paper" and not r.family):
         candidates = []
         for row in ROWS:
             runs = results.get(row.key, [])

@@ -181,6 +181,8 @@ class RecurrentPPO:
 
     def replay(self, params, carry0, traj: Trajectory) -> PolicyOutput:
         """Run the network over a whole (T, b) sequence from its initial carry."""
+        if getattr(self.network, "parallel_sequence", False):  # GTrXL: all steps at once
+            return self.network.apply(params, carry0, traj.obs, traj.start)[1]
 
         def step(carry, xs):
             obs, start = xs

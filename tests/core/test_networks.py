@@ -84,3 +84,38 @@ def test_gtrxl__memory_window_is_memory_length():
     assert not np.allclose(mean_a[1], mean_b[1])
     # layer 1 remembers layer-0 outputs for another m steps; after 2m steps nothing is left
     np.testing.assert_allclose(mean_a[2 * m + 1 :], mean_b[2 * m + 1 :], atol=1e-6)
+
+
+@pytest.mark.parametrize("memory_length", [5, 32])
+def test_gtrxl__whole_sequence_at_once_equals_step_by_step(memory_length):
+    """The training replay runs a GTrXL sequence as one banded attention per layer; it must give
+    the step-by-step numbers from any carry, with episode starts anywhere (first step included)."""
+    cfg = NETWORKS["gtrxl"].model_copy(update={"memory_length": memory_length})
+    net = make_network(cfg)
+    batch, t_len = 4, 40
+    params = net.init(jax.random.PRNGKey(1), net.initial_carry(batch), jnp.ones((batch, OBS)),
+                      jnp.ones((batch,), bool))  # fmt: skip
+    # a carry from a warm-up whose episodes started at different times (some memory slots invalid)
+    warm_obs = jax.random.normal(jax.random.PRNGKey(2), (7, batch, OBS))
+    warm_start = jnp.zeros((7, batch), bool).at[0].set(True).at[4, 1].set(True)
+
+    def step(carry, xs):
+        carry, out = net.apply(params, carry, *xs)
+        return carry, out
+
+    carry0, _ = jax.lax.scan(step, net.initial_carry(batch), (warm_obs, warm_start))
+    obs = jax.random.normal(jax.random.PRNGKey(3), (t_len, batch, OBS))
+    start = (jax.random.uniform(jax.random.PRNGKey(4), (t_len, batch)) < 0.08).at[0, 2].set(True)
+    _, by_step = jax.lax.scan(step, carry0, (obs, start))
+    same_carry, at_once = net.apply(params, carry0, obs, start)
+    assert same_carry is carry0
+    for a, b in ((at_once.mean, by_step.mean), (at_once.value, by_step.value), (at_once.log_std, by_step.log_std)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=2e-5, atol=2e-6)
+    # and gradients through it agree (what PPO's loss differentiates)
+    def loss(p, run):
+        return jnp.sum(run(p).mean ** 2) + jnp.sum(run(p).value)
+
+    g_seq = jax.grad(loss)(params, lambda p: net.apply(p, carry0, obs, start)[1])
+    g_step = jax.grad(loss)(params, lambda p: jax.lax.scan(lambda c, xs: net.apply(p, c, *xs), carry0, (obs, start))[1])
+    for a, b in zip(jax.tree.leaves(g_seq), jax.tree.leaves(g_step), strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-3, atol=1e-5)
