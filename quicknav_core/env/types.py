@@ -73,7 +73,7 @@ class EnvParams:
     exploration_reward: jax.Array | float = 0.0
     progress_mode: jax.Array | int = 0  # 0: sign(d_prev - d), 1: scaled difference, 2: potential
     potential_gamma: jax.Array | float = 0.99  # γ of the potential-based shaping (mode 2)
-    # Curriculum episode pool (``env.curriculum``; None: episodes are drawn by the spawn rule).
+    # Curriculum episode pool (``train.curriculum``; None: episodes are drawn by the spawn rule).
     # Sorted by the oracle's path length; resets draw from the first ``pool_count`` entries.
     pool_room: jax.Array | None = None  # (P,) int32 room index in the bank
     pool_start: jax.Array | None = None  # (P,) int32 flat start cell (row * grid + col)

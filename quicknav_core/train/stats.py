@@ -75,7 +75,7 @@ def summarize(stats: EpisodeStats) -> dict[str, float]:
 class StatsEnvState:
     env_state: Any
     stats: EpisodeStats
-    pool_count: Any = 0  # curriculum: episodes of the pool resets draw from (see env.curriculum)
+    pool_count: Any = 0  # curriculum: episodes of the pool resets draw from (see train.curriculum)
 
 
 class StatsWrapper(environment.Environment):

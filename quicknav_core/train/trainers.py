@@ -149,7 +149,7 @@ class Trainer:
         self.env, self.env_params = config.env.model_copy(update={"final_obs": False}).build("train")
         self.pool = None
         if config.curriculum.enabled:
-            from quicknav_core.env.curriculum import first_level, make_pool, with_pool
+            from quicknav_core.train.curriculum import first_level, make_pool, with_pool
 
             self.pool = make_pool(self.env_params, config.env, config.curriculum, config.seed)
             start = self.pool.level_counts[first_level(self.pool)]
