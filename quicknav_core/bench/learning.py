@@ -42,11 +42,13 @@ class Row:
     reward: str = "paper"  # a key of REWARDS
     overrides: tuple[tuple[str, Any], ...] = ()  # extra TrainConfig overrides (dotted keys)
     family: str = ""  # the paper row this one answers (the targets group by it); "" = name
+    variant: str = ""  # a key suffix for rows that share a preset and reward (e.g. "curriculum")
 
     @property
     def key(self) -> str:
-        """The row's name in report.json and its run folders: the preset, plus '-shaped'."""
-        return self.preset if self.reward == "paper" else f"{self.preset}-{self.reward}"
+        """The row's name in report.json and its run folders: the preset, its variant, '-shaped'."""
+        key = self.preset + (f"-{self.variant}" if self.variant else "")
+        return key if self.reward == "paper" else f"{key}-{self.reward}"
 
     @property
     def label(self) -> str:
@@ -80,26 +82,33 @@ ROWS = (
     # tuned on the train bank (the preset's notes say how)
     Row("PPO + LSTM, tuned 1x32", 2, "tuned-lstm", 60_000_000, 60, "steps 126.60 ± 75.71",
         family="PPO + LSTM"),
+    Row("PPO + LSTM, tuned 1x32, curriculum", 2, "tuned-lstm", 60_000_000, 60, "steps 126.60 ± 75.71",
+        family="PPO + LSTM", variant="curriculum", overrides=(("curriculum.enabled", True),)),
 )
 ROW_KEYS = tuple(r.key for r in ROWS)
 NOTES = (
     "Configs: `quicknav presets` / `quicknav_core/config/presets.py`; each seed is the preset with "
     "`seed` = 0, 1, 2 and the row's step budget; a seed stops at its step budget or its time cap. "
-    "Nothing was tuned on the test bank.",
-    "Table 1 TD3 exploits the paper's sign-of-progress reward (+λp for any step that shortens the "
-    "distance, however little): it collects a higher return than the oracle by wiggling towards the "
-    'goal without reaching it. `reward.progress="linear"` removes the exploit; the row keeps the '
-    "paper's reward.",
+    "Nothing was tuned on the test bank: tuned presets come from sweeps scored on the train bank "
+    "(`benchmarks/sweeps/`, results in `benchmarks/results/sweeps/`).",
+    "Rewards. 'paper': the paper's formula with its sign-of-progress term (+λp for any step that "
+    "shortens the distance, however little). Under it TD3 collects a higher return than the oracle by "
+    "wiggling towards the goal without reaching it (`tests/core/test_reward.py` shows a circling "
+    "policy out-earning the oracle). 'shaped': the same weights with `reward.progress=\"potential\"` "
+    "(λp·(d_{t-1} - γ·d_t)/step, d = 0 at the goal, γ = the trainer's discount): potential-based "
+    "shaping (Ng, Harada, Russell 1999), whose optimal policy is the one of the reward without the "
+    "progress term. Returns of shaped rows are not comparable with the paper-reward baselines.",
     "Table 2 presets use 64-step rollouts, 16 minibatches of whole env sequences and 4 epochs "
     "(QuickNav's choice): with the paper's 512-step rollouts recurrent PPO made 16 gradient steps per "
     "131k env steps and every memory agent stayed at the random policy. Rewards and other PPO values "
     "are the paper's tuned ones.",
-    "PPO + GTrXL is undertrained: its 6M-step budget was set from seed 0's ~14k steps/s; seeds 1-2 "
-    "ran at ~5.5k steps/s on another machine (see Machines). At 6M steps the three seeds are early "
-    "in learning (held-out success 0 %, 2 %, 17 %); MLP and LSTM got 60M. A 60-min budget per "
-    "seed is the next run to make.",
+    "PPO + GTrXL (paper row) is undertrained: its 6M-step budget was set when it trained at 5-14k "
+    "steps/s. The GTrXL replay now runs a whole rollout as one banded attention per layer "
+    "(`benchmarks/gtrxl_replay.py`: 12.6k -> 46.9k env steps/s on 2 cores); the tuned GTrXL row "
+    "trains with that.",
     "Seeds with 'machine not recorded' ran before the report stored machines, on this project's "
-    "2-core CPU VMs.",
+    "2-core CPU VMs. Seeds' minutes on one VM compare only when nothing else ran beside them; some "
+    "seeds of this session trained two at a time (a TD3 seed beside a GTrXL seed).",
     "The paper reports means over 10 episodes of one agent; the rows here are 100 held-out episodes "
     "per seed, mean ± std across seeds. Its Table 2 'steps to finish' is compared with our steps with "
     "failures counted as the 300-step limit (the stricter figure) and with steps over successes.",
