@@ -88,3 +88,22 @@ def test_bench_learning__report_written_mid_row_keeps_finished_seeds(tmp_path, m
     assert [r["training"]["seed"] for r in data["rows"]["paper-gtrxl"]["runs"]] == [0, 1, 2]
     assert "- box A: paper-gtrxl s0" in markdown
     assert "- box B: paper-gtrxl s1, paper-gtrxl s2" in markdown
+
+
+def test_rows__shaped_and_variant_rows_resolve_to_the_configs_they_name():
+    from quicknav_core.bench.learning import ROW_KEYS, ROWS
+    from quicknav_core.config import get_preset, resolve_train
+
+    assert len(set(ROW_KEYS)) == len(ROWS)  # run folders and report keys never collide
+    by_key = {r.key: r for r in ROWS}
+    for preset in ("paper-ppo", "paper-sac", "paper-td3", "paper-mlp", "paper-lstm", "paper-gtrxl"):
+        paper = resolve_train(by_key[preset].request(1, 2_000_000))
+        shaped = resolve_train(by_key[f"{preset}-shaped"].request(1, 2_000_000))
+        assert paper.env.reward.progress == "sign" and paper.seed == 1
+        assert shaped.env.reward.progress == "potential"
+        # the shaping's γ is the trainer's discount (else the optimal policy changes)
+        assert shaped.env.reward.potential_gamma == get_preset(preset).algorithm.gamma
+        assert shaped.model_copy(update={"env": paper.env}) == paper  # nothing else differs
+    cur = resolve_train(by_key["tuned-lstm-curriculum"].request(0, 60_000_000))
+    assert cur.curriculum.enabled and not resolve_train(by_key["tuned-lstm"].request(0, 60_000_000)).curriculum.enabled
+    assert by_key["tuned-lstm-curriculum"].family == "PPO + LSTM"
