@@ -230,9 +230,10 @@ def bench_learning(
         list[str] | None,
         typer.Option(
             "--row",
-            help="Rows to train now (default all): a preset (paper-ppo paper-sac paper-td3"
-            " paper-mlp paper-lstm paper-gtrxl) for the paper's reward, or the preset plus"
-            " '-shaped' (paper-td3-shaped, ...) for potential-based shaping.",
+            help="Rows to train now (default all): a paper preset (paper-ppo paper-sac paper-td3"
+            " paper-mlp paper-lstm paper-gtrxl) for the paper's reward, the preset plus '-shaped'"
+            " (paper-td3-shaped, ...) for potential-based shaping, or a tuned row (tuned-lstm,"
+            " tuned-lstm-curriculum, paper-gtrxl-60m).",
         ),
     ] = None,
     seeds: Annotated[int, typer.Option(min=1, max=10, help="Training seeds per row.")] = 3,

@@ -320,8 +320,8 @@ def build_report(
         oracle_steps = oracle.get("steps_to_goal_successes", {}).get("mean")
         lines += [f"## Table {table}" + (": goal observed" if table == 1 else ": goal hidden (lidar, pose, memory)"), "",
                   "| row | reward | seeds done | success | SPL | steps to goal (successes) | steps (failures = 300) | "
-                  "steps / oracle | return | collisions/ep | train min | env steps | paper |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+                  "steps / oracle | return | collisions/ep | train min | env steps | budget | paper |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
         agg_lines += [f"### Table {table}", "",
                       "| row | reward | seeds x episodes | success: mean [95% CI] | SPL: IQM [95% CI] | "
                       "SPL: mean [95% CI] | steps (failures = 300): IQM [95% CI] |",
@@ -341,6 +341,7 @@ def build_report(
                 f"{_agg([m['steps_to_goal_failures_as_limit']['mean'] for m in ms])} | {_agg(ratio)} | "
                 f"{_agg([m['return']['mean'] for m in ms])} | {_agg([m['collisions_per_episode'] for m in ms])} | "
                 f"{_agg([t.get('minutes') for t in tr])} | {_agg([t.get('env_steps') for t in tr])} | "
+                f"{row.total_steps / 1e6:g}M steps or {row.max_minutes:g} min | "
                 f"{row.paper if row.reward == 'paper' else '-'} |"
             )  # fmt: skip
             max_steps = get_preset(row.preset).env.max_steps
@@ -374,7 +375,7 @@ def build_report(
                 lines.append(
                     f"| {policy} (baseline) | paper | - | {m['success_rate']:.3g} | {m['spl']:.3g} | "
                     f"{m['steps_to_goal_successes']['mean']:.3g} | {m['steps_to_goal_failures_as_limit']['mean']:.3g} | "
-                    f"{'1' if policy == 'oracle' else '-'} | {m['return']['mean']:.3g} | {m['collisions_per_episode']:.3g} | - | - | - |"
+                    f"{'1' if policy == 'oracle' else '-'} | {m['return']['mean']:.3g} | {m['collisions_per_episode']:.3g} | - | - | - | - |"
                 )  # fmt: skip
         lines.append("")
         agg_lines.append("")

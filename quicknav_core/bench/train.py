@@ -26,7 +26,7 @@ ROWS = (
     ("rppo-lstm", "paper-lstm", 262_144),
     ("rppo-gtrxl", "paper-gtrxl", 262_144),
 )
-TARGETS = {"ppo-mlp": 100_000, "rppo-lstm": 30_000}
+TARGETS = {"ppo-mlp": 100_000, "rppo-lstm": 30_000, "rppo-gtrxl": 40_000}
 
 
 @dataclass
