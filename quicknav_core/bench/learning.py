@@ -379,6 +379,10 @@ def build_report(
                 )  # fmt: skip
         lines.append("")
         agg_lines.append("")
+        oracle_run = base.get(f"oracle-table{table}")
+        oracle_scores = episode_scores(oracle_run, 300) if oracle_run and profile_rows else None
+        if oracle_scores is not None:  # the reference curve: the planner driving the robot
+            profile_rows.append(("oracle (baseline)", _matrix([{"per_episode": oracle_scores}], "spl"), True))
         panels.append((f"Table {table}" + (": goal observed" if table == 1 else ": goal hidden"), profile_rows))
     lines += ["## Aggregates over seeds x episodes (rliable protocol)", "",
               "Point estimates over all seeds x held-out episodes pooled; 95 % intervals from the stratified "

@@ -96,7 +96,8 @@ def draw_profiles(
     xlabel: str = "SPL threshold τ",
 ) -> Path:
     """One panel per (title, rows); a row is (label, (seeds, episodes) scores in [0, 1], dashed).
-    Each curve is the fraction of runs x episodes with a score above τ, its band the 95 % interval."""
+    Each curve is the fraction of runs x episodes with a score above τ, its band the 95 % interval;
+    rows labelled as a baseline are drawn in grey."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -107,9 +108,10 @@ def draw_profiles(
     for ax, (title, rows) in zip(axes[0], panels, strict=True):
         for i, (label, scores, dashed) in enumerate(rows):
             point, lo, hi = performance_profile(scores, taus)
-            colour = f"C{i % 10}"
+            colour = "0.45" if "baseline" in label else f"C{i % 10}"
+            n = np.asarray(scores).shape[0]
             ax.plot(taus, point, color=colour, linestyle="--" if dashed else "-",
-                    label=f"{label} ({np.asarray(scores).shape[0]} seeds)")  # fmt: skip
+                    label=f"{label} ({n} seed{'s' if n != 1 else ''})")  # fmt: skip
             if not np.isnan(lo).all():
                 ax.fill_between(taus, lo, hi, color=colour, alpha=0.15, linewidth=0)
         ax.set_title(title)
