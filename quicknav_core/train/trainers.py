@@ -232,7 +232,11 @@ class Trainer:
         return serialization.to_bytes(jax.device_get(state))
 
     def from_bytes(self, data: bytes):
-        return self.place(serialization.from_bytes(jax.device_get(self.init_state()), data))
+        """A state from ``to_bytes``; fields added since the checkpoint was written (the
+        curriculum's ``pool_count``) take their fresh values instead of failing the restore."""
+        target = jax.device_get(self.init_state())
+        loaded = _with_missing(serialization.to_state_dict(target), serialization.msgpack_restore(data))
+        return self.place(serialization.from_state_dict(target, loaded))
 
     def state_sharding(self, state) -> Any:
         """Per leaf: split along the env batch (a ``BATCH_FIELDS`` leaf) or replicated."""
@@ -267,6 +271,13 @@ class Trainer:
         states, history: per chunk, per-trial episode metrics).
         """
         raise NotImplementedError
+
+
+def _with_missing(fresh: Any, loaded: Any) -> Any:
+    """``loaded`` (a restored state dict) with the keys only ``fresh`` has filled in from it."""
+    if not isinstance(fresh, dict) or not isinstance(loaded, dict):
+        return loaded
+    return {k: _with_missing(v, loaded[k]) if k in loaded else v for k, v in fresh.items()}
 
 
 def _floats(metrics: dict[str, Any]) -> dict[str, float]:

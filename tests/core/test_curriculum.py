@@ -188,3 +188,19 @@ def test_train_run__records_the_level_of_every_chunk(tmp_path):
         if after["curriculum_level"] > before["curriculum_level"]:
             assert before["success_rate"] == 1.0
     assert all(m["curriculum_max_path"] < 2.0 for m in metrics if m["curriculum_level"] == 0)
+
+
+def test_checkpoint_from_before_the_curriculum_field_still_restores():
+    """Checkpoints written before the stats wrapper carried ``pool_count`` resume (fresh value)."""
+    from flax import serialization
+
+    from quicknav_core.train.trainers import make_trainer
+
+    cfg = _tiny("mlp", promote_at=0.8).model_copy(update={"curriculum": CurriculumConfig()})
+    trainer = make_trainer(cfg)
+    state = jax.device_get(trainer.init_state())
+    old = serialization.to_state_dict(state)
+    del old["env_state"]["pool_count"]  # what an older checkpoint holds
+    restored = trainer.from_bytes(serialization.msgpack_serialize(old))
+    assert int(np.asarray(restored.env_state.pool_count)[0]) == 0
+    np.testing.assert_array_equal(np.asarray(restored.env_state.env_state.pos), np.asarray(state.env_state.env_state.pos))
