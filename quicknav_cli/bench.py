@@ -36,6 +36,14 @@ def checked_grids(grid: list[int] | None, default) -> list[int]:
     return grids
 
 
+def show_with_targets(table, width: int, targets: list[dict], unit: str = "") -> None:
+    """A bench's table (at least ``width`` columns wide), then each target: measured, met or not."""
+    Console(width=max(console.width, width)).print(table)
+    for t in targets:
+        mark = "[green]met[/]" if t["met"] else "[red]NOT met[/]"
+        console.print(f"target: {t['target']}: measured {t['measured']:,}{unit} -> {mark}")
+
+
 @app.callback()
 def bench_env(
     ctx: typer.Context,
@@ -122,10 +130,7 @@ def bench_env(
         table.add_column(col, justify="right" if col not in ("impl", "note") else "left")
     for row in format_table(report):
         table.add_row(*row)
-    Console(width=max(console.width, 120)).print(table)
-    for t in report.targets:
-        mark = "[green]met[/]" if t["met"] else "[red]NOT met[/]"
-        console.print(f"target: {t['target']}: measured {t['measured']:,} -> {mark}")
+    show_with_targets(table, 120, report.targets)
     paths = write_outputs(report, out)
     console.print("wrote " + ", ".join(str(p) for p in paths.values()))
 
@@ -169,10 +174,7 @@ def bench_rooms(
         table.add_column(col, justify="left" if col in ("grid", "carver") else "right")
     for row in format_table(report):
         table.add_row(*row)
-    Console(width=max(console.width, 100)).print(table)
-    for t in report.targets:
-        mark = "[green]met[/]" if t["met"] else "[red]NOT met[/]"
-        console.print(f"target: {t['target']}: measured {t['measured']:,} s -> {mark}")
+    show_with_targets(table, 100, report.targets, unit=" s")
     console.print(f"wrote {write_report(report, out)}")
 
 

@@ -120,16 +120,12 @@ EVAL_EPISODES = 100
 EVAL_SEED = 0
 
 
-def _slug(row: Row) -> str:
-    return row.key
-
-
 def run_one(row: Row, seed: int, runs_dir: Path, scale: float = 1.0, say=print) -> dict[str, Any]:
     """Train (or finish training) one seed of a row and evaluate it; returns its eval result."""
     from quicknav_core.eval.evaluate import run_eval
     from quicknav_core.train.run import CONFIG_FILE, checkpoint_dir, read_meta, train_run
 
-    run_dir = runs_dir / f"{_slug(row)}-s{seed}"
+    run_dir = runs_dir / f"{row.key}-s{seed}"
     eval_path = run_dir / "eval" / "eval.json"
     if eval_path.exists():
         return json.loads(eval_path.read_text())
@@ -460,7 +456,7 @@ def run_learning_bench(out_dir: Path, runs_dir: Path, rows: list[str] | None, se
     for row in ROWS:
         done: list[dict[str, Any]] = []
         for seed in range(seeds):
-            path = runs_dir / f"{_slug(row)}-s{seed}" / "eval" / "eval.json"
+            path = runs_dir / f"{row.key}-s{seed}" / "eval" / "eval.json"
             if path.exists():
                 done.append(json.loads(path.read_text()))
             elif (row.key, seed) in kept:

@@ -74,9 +74,9 @@ class EnvParams:
     progress_mode: jax.Array | int = 0  # 0: sign(d_prev - d), 1: scaled difference, 2: potential
     potential_gamma: jax.Array | float = 0.99  # γ of the potential-based shaping (mode 2)
     # Curriculum episode pool (``train.curriculum``; None: episodes are drawn by the spawn rule).
-    # Sorted by the oracle's path length; resets draw from the first ``pool_count`` entries.
+    # Sorted by the oracle's path length (shortest first); resets draw from the first
+    # ``pool_count`` entries.
     pool_room: jax.Array | None = None  # (P,) int32 room index in the bank
     pool_start: jax.Array | None = None  # (P,) int32 flat start cell (row * grid + col)
     pool_goal: jax.Array | None = None  # (P,) int32 flat goal cell
-    pool_length: jax.Array | None = None  # (P,) float32 oracle path length, metres, ascending
     pool_count: jax.Array | int = 0  # episodes of the pool in use (the curriculum's level)

@@ -31,7 +31,6 @@ class EpisodePool:
     goal: np.ndarray  # (P,) int32 flat cell
     length: np.ndarray  # (P,) float32 metres, ascending
     level_counts: tuple[int, ...]  # episodes in use at each level; the last is the whole pool
-    level_limits: tuple[float, ...]  # path-length limit of each level, metres (inf: no limit)
 
     def __len__(self) -> int:
         return int(self.room.size)
@@ -100,17 +99,15 @@ def make_pool(params: EnvParams, config: EnvConfig, curriculum: CurriculumConfig
     length = path_lengths(params, room, start, goal, rooms.shape[-1])
     order = np.argsort(length, kind="stable")
     length = length[order]
-    limits = (*tuple(f * config.room_size for f in curriculum.levels), float("inf"))
-    counts = tuple(int(np.searchsorted(length, lim, side="left")) for lim in limits[:-1])
-    return EpisodePool(room[order], start[order], goal[order], length, (*counts, int(length.size)), limits)
+    counts = [int(np.searchsorted(length, f * config.room_size, side="left")) for f in curriculum.levels]
+    return EpisodePool(room[order], start[order], goal[order], length, (*counts, int(length.size)))
 
 
 def with_pool(params: EnvParams, pool: EpisodePool, count: int) -> EnvParams:
     """``params`` whose resets draw from the first ``count`` episodes of ``pool``."""
     return params.replace(
         pool_room=jnp.asarray(pool.room), pool_start=jnp.asarray(pool.start),
-        pool_goal=jnp.asarray(pool.goal), pool_length=jnp.asarray(pool.length),
-        pool_count=jnp.int32(count),
+        pool_goal=jnp.asarray(pool.goal), pool_count=jnp.int32(count),
     )  # fmt: skip
 
 

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import heapq
+import math
+
 import numpy as np
 
 
@@ -118,3 +121,33 @@ def block_walk_reference(key_data, grid, target, step_cap, return_prob, to_carve
             carved.append(pos)
         step += 1
     return walls, step
+
+
+def grid_dijkstra(usable, goal_seeds, step):
+    """Heap Dijkstra on an 8-connected grid without corner cutting (the planner's graph):
+    distance from every node to the seeded ones, ``goal_seeds`` {(row, col): start distance}."""
+    n = usable.shape[0]
+    dist = np.full((n, n), np.inf)
+    heap = []
+    for (r, c), d in goal_seeds.items():
+        if usable[r, c] and d < dist[r, c]:
+            dist[r, c] = d
+            heapq.heappush(heap, (d, r, c))
+    while heap:
+        d, r, c = heapq.heappop(heap)
+        if d > dist[r, c]:
+            continue
+        for dr in (-1, 0, 1):
+            for dc in (-1, 0, 1):
+                if not (dr or dc):
+                    continue
+                rr, cc = r + dr, c + dc
+                if not (0 <= rr < n and 0 <= cc < n) or not usable[rr, cc]:
+                    continue
+                if dr and dc and not (usable[r + dr, c] and usable[r, c + dc]):
+                    continue
+                nd = d + step * (math.sqrt(2) if dr and dc else 1.0)
+                if nd < dist[rr, cc] - 1e-9:
+                    dist[rr, cc] = nd
+                    heapq.heappush(heap, (nd, rr, cc))
+    return dist

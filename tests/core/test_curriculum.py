@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import heapq
 import itertools
-import math
 
 import jax
 import numpy as np
@@ -13,6 +11,7 @@ from pydantic import ValidationError
 
 from quicknav_core.config import CurriculumConfig, EnvConfig, TrainConfig, resolve_train
 from quicknav_core.train.curriculum import draw_episodes, first_level, make_pool, with_pool
+from tests.core.reference import grid_dijkstra
 
 ENV = EnvConfig(grid_size=8, train_rooms=24, test_rooms=8, lidar_beams=8, max_steps=30)
 
@@ -21,33 +20,6 @@ ENV = EnvConfig(grid_size=8, train_rooms=24, test_rooms=8, lidar_beams=8, max_st
 def bank():
     env, params = ENV.build("train")
     return env, params
-
-
-def _dijkstra(free: np.ndarray, start: tuple[int, int], goal: tuple[int, int]) -> float:
-    """Cells apart on the 8-connected grid without corner cutting (diagonals cost sqrt 2)."""
-    g = free.shape[0]
-    best = {start: 0.0}
-    heap = [(0.0, start)]
-    while heap:
-        d, (r, c) = heapq.heappop(heap)
-        if (r, c) == goal:
-            return d
-        if d > best[(r, c)]:
-            continue
-        for dr in (-1, 0, 1):
-            for dc in (-1, 0, 1):
-                if not (dr or dc):
-                    continue
-                nr, nc = r + dr, c + dc
-                if not (0 <= nr < g and 0 <= nc < g and free[nr, nc]):
-                    continue
-                if dr and dc and not (free[r + dr, c] and free[r, c + dc]):
-                    continue
-                nd = d + (math.sqrt(2.0) if dr and dc else 1.0)
-                if nd < best.get((nr, nc), math.inf):
-                    best[(nr, nc)] = nd
-                    heapq.heappush(heap, (nd, (nr, nc)))
-    return math.inf
 
 
 def test_pool__episodes_follow_the_spawn_rule_and_lengths_match_a_dijkstra(bank):
@@ -61,11 +33,10 @@ def test_pool__episodes_follow_the_spawn_rule_and_lengths_match_a_dijkstra(bank)
     for r, s, t, length in zip(pool.room, pool.start, pool.goal, pool.length, strict=True):
         free = ~rooms[r]
         assert s != t and free[s // g, s % g] and free[t // g, t % g]
-        ref = max(_dijkstra(free, (s // g, s % g), (t // g, t % g)) * cell - ENV.goal_radius, 0.0)
+        ref = max(grid_dijkstra(free, {(t // g, t % g): 0.0}, cell)[s // g, s % g] - ENV.goal_radius, 0.0)
         assert length == pytest.approx(ref, abs=1e-4)
     # levels: episodes shorter than 0.25 and 0.5 of the room's side, then all
     assert pool.level_counts == (int(np.sum(pool.length < 2.0)), int(np.sum(pool.length < 4.0)), 144)
-    assert pool.level_limits[:2] == (2.0, 4.0) and math.isinf(pool.level_limits[2])
     # the goal is the farthest of goal_candidates other cells: never nearer than the median cell
     room, start, goal = draw_episodes(rooms, ENV, 50, seed=0)
     far = [(goal[i] // g - start[i] // g) ** 2 + (goal[i] % g - start[i] % g) ** 2 for i in range(room.size)]

@@ -1,8 +1,6 @@
 """Evaluation metrics, the shortest-path planner against brute force, and the oracle baseline."""
 
-import heapq
 import json
-import math
 
 import jax
 import jax.numpy as jnp
@@ -16,7 +14,7 @@ from quicknav_core.eval.evaluate import Episodes, evaluate, spl, summarize, wils
 from quicknav_core.eval.planning import INF, goal_field, greedy_path, node_positions
 from quicknav_core.eval.scripted import OracleAgent, RandomAgent
 from quicknav_core.train import train_run
-from tests.core.reference import disc_wall_clearance
+from tests.core.reference import disc_wall_clearance, grid_dijkstra
 
 
 def _episodes(success, steps, path, ref, returns=None, collisions=None, truncated=None):
@@ -74,35 +72,6 @@ def test_wilson_interval__known_values():
     assert wilson_interval(10, 10)[0] == pytest.approx(0.7225, abs=1e-3)
 
 
-def _brute_force_dijkstra(usable, goal_seeds, step):
-    """Heap Dijkstra over the same 8-connected node graph (no corner cutting)."""
-    n = usable.shape[0]
-    dist = np.full((n, n), np.inf)
-    heap = []
-    for (r, c), d in goal_seeds.items():
-        if usable[r, c] and d < dist[r, c]:
-            dist[r, c] = d
-            heapq.heappush(heap, (d, r, c))
-    while heap:
-        d, r, c = heapq.heappop(heap)
-        if d > dist[r, c]:
-            continue
-        for dr in (-1, 0, 1):
-            for dc in (-1, 0, 1):
-                if not (dr or dc):
-                    continue
-                rr, cc = r + dr, c + dc
-                if not (0 <= rr < n and 0 <= cc < n) or not usable[rr, cc]:
-                    continue
-                if dr and dc and not (usable[r + dr, c] and usable[r, c + dc]):
-                    continue
-                nd = d + step * (math.sqrt(2) if dr and dc else 1.0)
-                if nd < dist[rr, cc] - 1e-9:
-                    dist[rr, cc] = nd
-                    heapq.heappush(heap, (nd, rr, cc))
-    return dist
-
-
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_shortest_path__matches_brute_force_dijkstra_and_keeps_clearance(seed):
     cfg = EnvConfig(grid_size=8, train_rooms=8, room_seed=seed)
@@ -121,7 +90,7 @@ def test_shortest_path__matches_brute_force_dijkstra_and_keeps_clearance(seed):
     gr, gc = (np.floor(np.asarray(state.goal)[::-1] / h)).astype(int)
     seeds = {(rr, cc): float(np.linalg.norm(nodes[rr, cc] - np.asarray(state.goal)))
              for rr in range(gr - 1, gr + 2) for cc in range(gc - 1, gc + 2)}  # fmt: skip
-    ref = _brute_force_dijkstra(usable, seeds, h)
+    ref = grid_dijkstra(usable, seeds, h)
     reachable = np.isfinite(ref)
     assert reachable.sum() > 0.5 * usable.sum()
     np.testing.assert_allclose(field[reachable], ref[reachable], rtol=1e-5, atol=1e-4)
