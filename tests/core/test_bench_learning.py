@@ -107,3 +107,21 @@ def test_rows__shaped_and_variant_rows_resolve_to_the_configs_they_name():
     cur = resolve_train(by_key["tuned-lstm-curriculum"].request(0, 60_000_000))
     assert cur.curriculum.enabled and not resolve_train(by_key["tuned-lstm"].request(0, 60_000_000)).curriculum.enabled
     assert by_key["tuned-lstm-curriculum"].family == "PPO + LSTM"
+
+
+def test_rows__tuned_rows_answer_a_paper_row_and_change_only_the_trainer():
+    from quicknav_core.bench.learning import ROWS
+    from quicknav_core.config import resolve_train
+
+    paper_names = {r.name for r in ROWS if r.key == r.preset and r.preset.startswith("paper-")}
+    assert len(paper_names) == 6
+    by_key = {r.key: r for r in ROWS}
+    for row in ROWS:
+        assert (row.family or row.name) in paper_names, row.key  # every row counts for a target
+    # the tuned rows keep their paper row's env (rewards, rooms, observation): only the agent differs
+    for tuned, paper in (("tuned-td3-shaped", "paper-td3-shaped"), ("tuned-gtrxl", "paper-gtrxl"),
+                         ("tuned-lstm", "paper-lstm")):  # fmt: skip
+        t = resolve_train(by_key[tuned].request(2, 1_000_000))
+        p = resolve_train(by_key[paper].request(2, 1_000_000))
+        assert t.env == p.env, tuned
+        assert t.algorithm != p.algorithm or t.network != p.network, tuned
