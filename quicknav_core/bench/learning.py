@@ -113,8 +113,9 @@ NOTES = (
     "are the paper's tuned ones.",
     "PPO + GTrXL (paper row) is undertrained: its 6M-step budget was set when it trained at 5-14k "
     "steps/s. The GTrXL replay now runs a whole rollout as one banded attention per layer "
-    "(`benchmarks/gtrxl_replay.py`: 12.6k -> 46.9k env steps/s on 2 cores); the tuned GTrXL row "
-    "trains with that.",
+    "(`benchmarks/gtrxl_replay.py`: 12.6k -> 46.9k env steps/s on 2 cores); the 60M-step and tuned "
+    "GTrXL rows train with that. The tuned row's embedding 16 and learning rate come from a "
+    "train-bank sweep stopped after 2 trials (`benchmarks/results/sweeps/README.md`).",
     "Seeds with 'machine not recorded' ran before the report stored machines, on this project's "
     "2-core CPU VMs. Seeds' minutes on one VM compare only when nothing else ran beside them; some "
     "seeds of this session trained two at a time (a TD3 seed beside a GTrXL seed).",
