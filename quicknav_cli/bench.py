@@ -234,8 +234,8 @@ def bench_learning(
             "--row",
             help="Rows to train now (default all): a paper preset (paper-ppo paper-sac paper-td3"
             " paper-mlp paper-lstm paper-gtrxl) for the paper's reward, the preset plus '-shaped'"
-            " (paper-td3-shaped, ...) for potential-based shaping, or a tuned row (tuned-lstm,"
-            " tuned-lstm-curriculum, tuned-gtrxl, tuned-td3-shaped, paper-gtrxl-60m).",
+            " (paper-td3-shaped, ...) for potential-based shaping, or a tuned or variant row"
+            " (tuned-gtrxl, ...; an unknown key lists them all).",
         ),
     ] = None,
     seeds: Annotated[int, typer.Option(min=1, max=10, help="Training seeds per row.")] = 3,

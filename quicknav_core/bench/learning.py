@@ -117,8 +117,9 @@ NOTES = (
     "GTrXL rows train with that. The tuned row's embedding 16 and learning rate come from a "
     "train-bank sweep stopped after 2 trials (`benchmarks/results/sweeps/README.md`).",
     "Seeds with 'machine not recorded' ran before the report stored machines, on this project's "
-    "2-core CPU VMs. Seeds' minutes on one VM compare only when nothing else ran beside them; some "
-    "seeds of this session trained two at a time (a TD3 seed beside a GTrXL seed).",
+    "2-core CPU VMs. Seeds' minutes on one VM compare only when nothing else ran beside them; many "
+    "later seeds trained two at a time on the 2 cores (TD3 beside GTrXL seeds; the shaped GTrXL, "
+    "LSTM and memory-MLP seeds beside each other and a test run), so their minutes are upper bounds.",
     "The paper reports means over 10 episodes of one agent; the rows here are 100 held-out episodes "
     "per seed, mean ± std across seeds. Its Table 2 'steps to finish' is compared with our steps with "
     "failures counted as the 300-step limit (the stricter figure) and with steps over successes.",

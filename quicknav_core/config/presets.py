@@ -34,6 +34,30 @@ _TABLE2_NOTE = (
     "QuickNav's: with the paper's 512-step rollouts the recurrent agents never left the random policy"
 )
 
+_PAPER_TD3 = {
+    "name": "td3",
+    "learning_rate": 5e-4,
+    "exploration_noise": 0.44,
+    "buffer_size": 50_000,
+    "batch_size": 256,
+    "polyak": 0.97,
+    "target_noise": 0.16,
+    "policy_delay": 1,
+}
+# the paper's tuned reward weights of each Table 2 network
+_LSTM_ENV = {
+    **_TABLE2_ENV,
+    "reward": {"step_penalty": 0.370, "progress_reward": 0.443, "cycle_penalty": 0.203},
+}
+_GTRXL_ENV = {
+    **_TABLE2_ENV,
+    "reward": {"step_penalty": 0.232, "progress_reward": 0.291, "cycle_penalty": 0.276},
+}
+_PAPER_GTRXL = {
+    "kind": "gtrxl", "embed_size": 8, "head_size": 4, "num_layers": 2, "num_heads": 2,
+    "memory_length": 32,
+}
+
 PRESETS: dict[str, dict[str, Any]] = {
     "demo": {
         "description": "Fast demo: PPO, 2x64 MLP, default 16x16 rooms with the goal observed; "
@@ -90,16 +114,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "description": "Table 1: TD3 with the paper's tuned values, 2x128 MLP, goal observed.",
         "notes": "gamma (not in the paper) kept at 0.99; num_envs and total_steps are QuickNav's.",
         "config": {
-            "algorithm": {
-                "name": "td3",
-                "learning_rate": 5e-4,
-                "exploration_noise": 0.44,
-                "buffer_size": 50_000,
-                "batch_size": 256,
-                "polyak": 0.97,
-                "target_noise": 0.16,
-                "policy_delay": 1,
-            },
+            "algorithm": _PAPER_TD3,
             "network": {"kind": "mlp", "hidden_sizes": [128, 128]},
             "num_envs": 16,
             "total_steps": 2_000_000,
@@ -107,23 +122,17 @@ PRESETS: dict[str, dict[str, Any]] = {
         },
     },
     "tuned-td3": {
-        "description": "Table 1, tuned: TD3 with policy delay 2, 2x128 MLP, goal observed; meant for "
-        "the shaped reward (reward.progress=potential).",
+        "description": "Table 1, tuned: TD3 with policy delay 2, 2x128 MLP, goal observed, "
+        "potential-based shaped reward (reward.progress=potential, γ 0.99).",
         "notes": "Tuned on the train bank only, under the shaped reward (benchmarks/sweeps/td3_shaped.json,"
         " trials of 3M steps, objective steps to goal with failures as the limit; stopped after its"
         " first finished trial for time): policy delay 2 (TD3's usual value; the paper's is 1),"
         " learning rate 3.5e-4, exploration noise 0.39 reached 88 % train-bank success at 3M steps."
-        " Other values are paper-td3's.",
+        " Other values are paper-td3's; the reward is the one it was tuned under.",
         "config": {
+            "env": {"reward": {"progress": "potential", "potential_gamma": 0.99}},
             "algorithm": {
-                "name": "td3",
-                "learning_rate": 3.54e-4,
-                "exploration_noise": 0.386,
-                "buffer_size": 50_000,
-                "batch_size": 256,
-                "polyak": 0.97,
-                "target_noise": 0.16,
-                "policy_delay": 2,
+                **_PAPER_TD3, "learning_rate": 3.54e-4, "exploration_noise": 0.386, "policy_delay": 2,
             },
             "network": {"kind": "mlp", "hidden_sizes": [128, 128]},
             "num_envs": 16,
@@ -150,10 +159,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "description": "Table 2: PPO, LSTM 2 layers x 15, goal hidden, tuned rewards.",
         "notes": _TABLE2_NOTE + ".",
         "config": {
-            "env": {
-                **_TABLE2_ENV,
-                "reward": {"step_penalty": 0.370, "progress_reward": 0.443, "cycle_penalty": 0.203},
-            },
+            "env": _LSTM_ENV,
             "algorithm": _TABLE2_PPO,
             "network": {"kind": "lstm", "num_layers": 2, "hidden_size": 15},
             "num_envs": 256,
@@ -168,10 +174,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         " rate 5.7e-4, ent_coef 0.0088) reached 89 % train-bank success at 10M steps, where no"
         " 2 x 15 or 1 x 15 trial left 0 %. " + _TABLE2_NOTE + ".",
         "config": {
-            "env": {
-                **_TABLE2_ENV,
-                "reward": {"step_penalty": 0.370, "progress_reward": 0.443, "cycle_penalty": 0.203},
-            },
+            "env": _LSTM_ENV,
             "algorithm": {**_TABLE2_PPO, "learning_rate": 5.75e-4, "ent_coef": 0.00875},
             "network": {"kind": "lstm", "num_layers": 1, "hidden_size": 32},
             "num_envs": 256,
@@ -183,19 +186,9 @@ PRESETS: dict[str, dict[str, Any]] = {
         "description": "Table 2: PPO, GTrXL (embedding 8, head size 4, 2 layers, 2 heads, memory 32), goal hidden.",
         "notes": _TABLE2_NOTE + ".",
         "config": {
-            "env": {
-                **_TABLE2_ENV,
-                "reward": {"step_penalty": 0.232, "progress_reward": 0.291, "cycle_penalty": 0.276},
-            },
+            "env": _GTRXL_ENV,
             "algorithm": _TABLE2_PPO,
-            "network": {
-                "kind": "gtrxl",
-                "embed_size": 8,
-                "head_size": 4,
-                "num_layers": 2,
-                "num_heads": 2,
-                "memory_length": 32,
-            },
+            "network": _PAPER_GTRXL,
             "num_envs": 256,
             "total_steps": 20_000_000,
             "chunk_steps": 1_048_576,
@@ -210,19 +203,9 @@ PRESETS: dict[str, dict[str, Any]] = {
         " success at 10M steps where the paper's embedding 8 (lr 5.3e-4) stayed at 0 %. "
         + _TABLE2_NOTE + ".",
         "config": {
-            "env": {
-                **_TABLE2_ENV,
-                "reward": {"step_penalty": 0.232, "progress_reward": 0.291, "cycle_penalty": 0.276},
-            },
+            "env": _GTRXL_ENV,
             "algorithm": {**_TABLE2_PPO, "learning_rate": 1.17e-3, "ent_coef": 0.0096},
-            "network": {
-                "kind": "gtrxl",
-                "embed_size": 16,
-                "head_size": 4,
-                "num_layers": 2,
-                "num_heads": 2,
-                "memory_length": 32,
-            },
+            "network": {**_PAPER_GTRXL, "embed_size": 16},
             "num_envs": 256,
             "total_steps": 20_000_000,
             "chunk_steps": 1_048_576,

@@ -125,3 +125,7 @@ def test_rows__tuned_rows_answer_a_paper_row_and_change_only_the_trainer():
         p = resolve_train(by_key[paper].request(2, 1_000_000))
         assert t.env == p.env, tuned
         assert t.algorithm != p.algorithm or t.network != p.network, tuned
+    # tuned-td3 carries the shaped reward it was tuned under (a plain `--preset tuned-td3` gets it)
+    from quicknav_core.config import get_preset
+
+    assert get_preset("tuned-td3").env == resolve_train(by_key["paper-td3-shaped"].request(0, 1)).env
