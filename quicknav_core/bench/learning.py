@@ -10,11 +10,14 @@ are fixed before evaluation.
 
 from __future__ import annotations
 
+import fcntl
 import json
 import math
+import os
 import re
 import statistics
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -432,6 +435,34 @@ def dump_report(data: dict[str, Any]) -> str:
     return re.sub(r"\[[-\s\d.,eE+nulltruefals]*\]", one_line, json.dumps(data, indent=2)) + "\n"
 
 
+def _seed_of(run: dict[str, Any]) -> int | None:
+    seed = (run.get("training") or {}).get("seed")
+    return None if seed is None else int(seed)
+
+
+def _recorded_seeds(report_json: Path) -> dict[tuple[str, int], dict[str, Any]]:
+    """Every (row key, seed) a report.json holds, with its run."""
+    if not report_json.exists():
+        return {}
+    out = {}
+    for key, row_data in json.loads(report_json.read_text()).get("rows", {}).items():
+        for run in row_data.get("runs", []):
+            if (seed := _seed_of(run)) is not None:
+                out[(key, seed)] = run
+    return out
+
+
+@contextmanager
+def _locked(folder: Path):
+    """An exclusive advisory lock on ``folder`` (held while a report is read, merged and written)."""
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # closing the descriptor releases the lock
+
+
 def run_learning_bench(out_dir: Path, runs_dir: Path, rows: list[str] | None, seeds: int = 3,
                        scale: float = 1.0, say=print) -> tuple[str, dict]:  # fmt: skip
     """Train/evaluate what is missing, then write report.md, report.json and profiles.png into
@@ -442,24 +473,28 @@ def run_learning_bench(out_dir: Path, runs_dir: Path, rows: list[str] | None, se
     base = baselines(runs_dir)
     # Seeds finished on another machine or in an earlier checkout survive in the committed
     # report.json even when their run folders (git-ignored) are gone: keep them.
-    kept: dict[tuple[str, int], dict[str, Any]] = {}
     previous = out_dir / "report.json"
-    if previous.exists():
-        for key, row_data in json.loads(previous.read_text()).get("rows", {}).items():
-            for run in row_data.get("runs", []):
-                seed = (run.get("training") or {}).get("seed")
-                if seed is not None:
-                    kept[(key, int(seed))] = run
+    kept = _recorded_seeds(previous)
     # Until a row is reached, the report shows what was kept for it, so a report written mid-run
     # (after every seed) never drops a finished seed.
     results: dict[str, list[dict[str, Any]]] = {
         row.key: [kept[(row.key, s)] for s in range(seeds) if (row.key, s) in kept] for row in ROWS
     }
 
-    def write() -> None:
-        markdown, data = build_report(results, base, seeds, out_dir / "profiles.png")
-        (out_dir / "report.md").write_text(markdown)
-        (out_dir / "report.json").write_text(dump_report(data))
+    def write() -> tuple[str, dict]:
+        # Another `bench learning` process (other rows, same results folder) may have added seeds
+        # since this one started: merge them in under a lock on the folder instead of overwriting.
+        with _locked(out_dir):
+            merged = {key: list(runs) for key, runs in results.items()}
+            for (key, seed), run in _recorded_seeds(previous).items():
+                if key in merged and seed not in {_seed_of(r) for r in merged[key]}:
+                    merged[key].append(run)
+            for runs in merged.values():
+                runs.sort(key=lambda r: _seed_of(r) if _seed_of(r) is not None else -1)
+            markdown, data = build_report(merged, base, seeds, out_dir / "profiles.png")
+            (out_dir / "report.md").write_text(markdown)
+            (out_dir / "report.json").write_text(dump_report(data))
+        return markdown, data
 
     for row in ROWS:
         done: list[dict[str, Any]] = []
@@ -477,5 +512,4 @@ def run_learning_bench(out_dir: Path, runs_dir: Path, rows: list[str] | None, se
                 ]
                 write()
         results[row.key] = done
-    write()
-    return build_report(results, base, seeds)
+    return write()

@@ -129,3 +129,31 @@ def test_rows__tuned_rows_answer_a_paper_row_and_change_only_the_trainer():
     from quicknav_core.config import get_preset
 
     assert get_preset("tuned-td3").env == resolve_train(by_key["paper-td3-shaped"].request(0, 1_000_000)).env
+
+
+def test_bench_learning__two_processes_sharing_a_report_keep_each_others_seeds(tmp_path, monkeypatch):
+    """Rows trained by two `bench learning` processes at once: neither write drops the other's seeds."""
+    import quicknav_core.bench.learning as bl
+
+    out, runs = tmp_path / "results", tmp_path / "runs"
+    monkeypatch.setattr(bl, "baselines", lambda runs_dir: {})
+    out.mkdir()
+
+    def other_process_finishes(seed: int) -> None:
+        """What the other process's write leaves on disk: its own row's seed added."""
+        on_disk = json.loads((out / "report.json").read_text()) if (out / "report.json").exists() else {"rows": {}}
+        row = on_disk["rows"].setdefault("paper-sac-shaped", {"runs": []})
+        row["runs"].append(_run(0.9, 70.0, 30.0, seed))
+        (out / "report.json").write_text(json.dumps(on_disk))
+
+    def fake_run_one(row, seed, runs_dir, scale=1.0, say=print):
+        other_process_finishes(seed)  # the other process writes while this seed trains
+        return _run(0.6, 90.0, 8.0, seed)
+
+    monkeypatch.setattr(bl, "run_one", fake_run_one)
+    markdown, data = bl.run_learning_bench(out, runs, rows=["paper-lstm-shaped"], seeds=3)
+    on_disk = json.loads((out / "report.json").read_text())
+    for report in (data, on_disk):
+        assert [r["training"]["seed"] for r in report["rows"]["paper-lstm-shaped"]["runs"]] == [0, 1, 2]
+        assert [r["training"]["seed"] for r in report["rows"]["paper-sac-shaped"]["runs"]] == [0, 1, 2]
+    assert "| SAC (MLP 2x128), shaped reward | shaped | 3/3 |" in markdown
