@@ -249,6 +249,14 @@ def bench_learning(
     runs: Annotated[
         Path, typer.Option(help="Folder for the training runs (large; not for git).")
     ] = Path("runs/learning"),
+    rerun_scoreless: Annotated[
+        bool,
+        typer.Option(
+            help="Also retrain the chosen rows' seeds recorded before the report kept"
+            " per-episode scores (they have no IQM or bootstrap interval); each stays in the"
+            " report until its new run is evaluated.",
+        ),
+    ] = False,
 ) -> None:
     """The paper's Tables 1 and 2: train with several seeds, evaluate on held-out rooms, report."""
     from quicknav_core.bench.learning import ROW_KEYS, run_learning_bench
@@ -259,7 +267,8 @@ def bench_learning(
         fail(f"--row {bad[0]!r}: allowed values are {', '.join(known)}")
     enable_compilation_cache()
     markdown, _ = run_learning_bench(
-        out, runs, row, seeds, scale, say=lambda m: console.print(m, highlight=False)
-    )
+        out, runs, row, seeds, scale, say=lambda m: console.print(m, highlight=False),
+        rerun_scoreless=rerun_scoreless,
+    )  # fmt: skip
     console.print(markdown, highlight=False, markup=False, soft_wrap=True)
     console.print(f"wrote {out}/report.md, report.json and profiles.png")

@@ -435,11 +435,6 @@ def dump_report(data: dict[str, Any]) -> str:
     return re.sub(r"\[[-\s\d.,eE+nulltruefals]*\]", one_line, json.dumps(data, indent=2)) + "\n"
 
 
-def _seed_of(run: dict[str, Any]) -> int | None:
-    seed = (run.get("training") or {}).get("seed")
-    return None if seed is None else int(seed)
-
-
 def _recorded_seeds(report_json: Path) -> dict[tuple[str, int], dict[str, Any]]:
     """Every (row key, seed) a report.json holds, with its run."""
     if not report_json.exists():
@@ -447,9 +442,16 @@ def _recorded_seeds(report_json: Path) -> dict[tuple[str, int], dict[str, Any]]:
     out = {}
     for key, row_data in json.loads(report_json.read_text()).get("rows", {}).items():
         for run in row_data.get("runs", []):
-            if (seed := _seed_of(run)) is not None:
-                out[(key, seed)] = run
+            seed = (run.get("training") or {}).get("seed")
+            if seed is not None:
+                out[(key, int(seed))] = run
     return out
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
 
 
 @contextmanager
@@ -464,9 +466,11 @@ def _locked(folder: Path):
 
 
 def run_learning_bench(out_dir: Path, runs_dir: Path, rows: list[str] | None, seeds: int = 3,
-                       scale: float = 1.0, say=print) -> tuple[str, dict]:  # fmt: skip
+                       scale: float = 1.0, say=print, rerun_scoreless: bool = False) -> tuple[str, dict]:  # fmt: skip
     """Train/evaluate what is missing, then write report.md, report.json and profiles.png into
-    ``out_dir``. ``rows``: row keys (``ROW_KEYS``) to train now; None = all."""
+    ``out_dir``. ``rows``: row keys (``ROW_KEYS``) to train now; None = all. ``rerun_scoreless``:
+    also retrain the selected rows' seeds recorded before the report kept per-episode scores (each
+    recorded seed stays in the report until its new run is evaluated)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     runs_dir.mkdir(parents=True, exist_ok=True)
     say("baselines (oracle, random)")
@@ -474,42 +478,34 @@ def run_learning_bench(out_dir: Path, runs_dir: Path, rows: list[str] | None, se
     # Seeds finished on another machine or in an earlier checkout survive in the committed
     # report.json even when their run folders (git-ignored) are gone: keep them.
     previous = out_dir / "report.json"
-    kept = _recorded_seeds(previous)
-    # Until a row is reached, the report shows what was kept for it, so a report written mid-run
-    # (after every seed) never drops a finished seed.
-    results: dict[str, list[dict[str, Any]]] = {
-        row.key: [kept[(row.key, s)] for s in range(seeds) if (row.key, s) in kept] for row in ROWS
-    }
+    with _locked(out_dir):
+        kept = _recorded_seeds(previous)
+    own: dict[tuple[str, int], dict[str, Any]] = {}  # seeds this process trained or found in runs_dir
 
     def write() -> tuple[str, dict]:
-        # Another `bench learning` process (other rows, same results folder) may have added seeds
-        # since this one started: merge them in under a lock on the folder instead of overwriting.
+        # Another `bench learning` process (other rows, same results folder) may have written seeds
+        # since this one started: the file on disk is the authority for every seed this process did
+        # not produce itself, read again under a lock on the folder.
         with _locked(out_dir):
-            merged = {key: list(runs) for key, runs in results.items()}
-            for (key, seed), run in _recorded_seeds(previous).items():
-                if key in merged and seed not in {_seed_of(r) for r in merged[key]}:
-                    merged[key].append(run)
-            for runs in merged.values():
-                runs.sort(key=lambda r: _seed_of(r) if _seed_of(r) is not None else -1)
-            markdown, data = build_report(merged, base, seeds, out_dir / "profiles.png")
-            (out_dir / "report.md").write_text(markdown)
-            (out_dir / "report.json").write_text(dump_report(data))
+            by_seed = kept | _recorded_seeds(previous) | own
+            results = {row.key: [by_seed[(row.key, s)] for s in range(seeds) if (row.key, s) in by_seed]
+                       for row in ROWS}  # fmt: skip
+            markdown, data = build_report(results, base, seeds, out_dir / "profiles.png")
+            _write_atomic(out_dir / "report.md", markdown)
+            _write_atomic(previous, dump_report(data))  # a cut-off write never truncates it
         return markdown, data
 
     for row in ROWS:
-        done: list[dict[str, Any]] = []
+        selected = not rows or row.key in rows
         for seed in range(seeds):
             path = runs_dir / f"{row.key}-s{seed}" / "eval" / "eval.json"
+            recorded = kept.get((row.key, seed))
             if path.exists():
-                done.append(json.loads(path.read_text()))
-            elif (row.key, seed) in kept:
-                done.append(kept[(row.key, seed)])
-            elif not rows or row.key in rows:
-                say(f"{row.label}, seed {seed}")
-                done.append(run_one(row, seed, runs_dir, scale, say))
-                results[row.key] = done + [
-                    kept[(row.key, s)] for s in range(seed + 1, seeds) if (row.key, s) in kept
-                ]
+                own[(row.key, seed)] = json.loads(path.read_text())
+            elif recorded is not None and not (rerun_scoreless and selected and not recorded.get("per_episode")):
+                continue
+            elif selected:
+                say(f"{row.label}, seed {seed}" + (" (rerun: no per-episode scores)" if recorded else ""))
+                own[(row.key, seed)] = run_one(row, seed, runs_dir, scale, say)
                 write()
-        results[row.key] = done
     return write()

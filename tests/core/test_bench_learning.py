@@ -157,3 +157,62 @@ def test_bench_learning__two_processes_sharing_a_report_keep_each_others_seeds(t
         assert [r["training"]["seed"] for r in report["rows"]["paper-lstm-shaped"]["runs"]] == [0, 1, 2]
         assert [r["training"]["seed"] for r in report["rows"]["paper-sac-shaped"]["runs"]] == [0, 1, 2]
     assert "| SAC (MLP 2x128), shaped reward | shaped | 3/3 |" in markdown
+
+
+def test_bench_learning__rerun_scoreless_replaces_only_seeds_without_episodes(tmp_path, monkeypatch):
+    """--rerun-scoreless retrains the seeds recorded without per-episode scores, nothing else, and
+    the recorded seed stays in the report while its rerun trains."""
+    import quicknav_core.bench.learning as bl
+
+    out, runs = tmp_path / "results", tmp_path / "runs"
+    monkeypatch.setattr(bl, "baselines", lambda runs_dir: {})
+    out.mkdir()
+    scored = {"metrics": _metrics(0.9), "training": {"seed": 1, "minutes": 7.0},
+              "per_episode": {"success": [1, 0], "spl": [0.9, 0.0], "steps": [60, 300]}}  # fmt: skip
+    old = [_run(0.5, 90.0, 8.0, 0), scored, _run(0.5, 90.0, 8.0, 2)]
+    (out / "report.json").write_text(json.dumps({"rows": {"paper-mlp": {"runs": old},
+                                                          "paper-lstm": {"runs": old}}}))  # fmt: skip
+    trained: list[tuple[str, int]] = []
+
+    def fake_run_one(row, seed, runs_dir, scale=1.0, say=print):
+        on_disk = json.loads((out / "report.json").read_text())
+        assert len(on_disk["rows"][row.key]["runs"]) == 3  # the old seed is still reported
+        trained.append((row.key, seed))
+        run = _run(0.95, 70.0, 9.0, seed)
+        run["per_episode"] = {"success": [1, 1], "spl": [0.9, 0.8], "steps": [60, 70]}
+        return run
+
+    monkeypatch.setattr(bl, "run_one", fake_run_one)
+    _, data = bl.run_learning_bench(out, runs, rows=["paper-mlp"], seeds=3, rerun_scoreless=True)
+    assert trained == [("paper-mlp", 0), ("paper-mlp", 2)]  # seed 1 had scores; paper-lstm not chosen
+    mlp = data["rows"]["paper-mlp"]["runs"]
+    assert [r["metrics"]["success_rate"] for r in mlp] == [0.95, 0.9, 0.95]
+    assert data["rows"]["paper-mlp"]["aggregate"]["seeds"] == 3
+    assert [r["metrics"]["success_rate"] for r in data["rows"]["paper-lstm"]["runs"]] == [0.5, 0.9, 0.5]
+    # without the flag nothing recorded is trained again
+    trained.clear()
+    bl.run_learning_bench(out, runs, rows=["paper-lstm"], seeds=3)
+    assert trained == []
+
+
+def test_bench_learning__a_seed_another_process_replaced_is_not_written_back_stale(tmp_path, monkeypatch):
+    """Process A started with an old seed of row X; process B reran it meanwhile. A's writes keep B's."""
+    import quicknav_core.bench.learning as bl
+
+    out, runs = tmp_path / "results", tmp_path / "runs"
+    monkeypatch.setattr(bl, "baselines", lambda runs_dir: {})
+    out.mkdir()
+    (out / "report.json").write_text(json.dumps({"rows": {"paper-mlp": {"runs": [_run(0.5, 90.0, 8.0, 0)]}}}))
+
+    def fake_run_one(row, seed, runs_dir, scale=1.0, say=print):
+        on_disk = json.loads((out / "report.json").read_text())
+        on_disk["rows"]["paper-mlp"]["runs"] = [_run(0.97, 60.0, 9.0, 0)]  # B's rerun lands
+        (out / "report.json").write_text(json.dumps(on_disk))
+        return _run(0.6, 90.0, 8.0, seed)
+
+    monkeypatch.setattr(bl, "run_one", fake_run_one)
+    _, data = bl.run_learning_bench(out, runs, rows=["paper-lstm-shaped"], seeds=1)
+    assert data["rows"]["paper-mlp"]["runs"][0]["metrics"]["success_rate"] == 0.97
+    on_disk = json.loads((out / "report.json").read_text())
+    assert on_disk["rows"]["paper-mlp"]["runs"][0]["metrics"]["success_rate"] == 0.97
+    assert not list(out.glob(".*.tmp"))  # atomic writes leave no temporary file behind
