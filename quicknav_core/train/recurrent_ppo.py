@@ -74,6 +74,12 @@ class RecurrentPPOState:
     env_params: Any  # EnvParams: traced, so reward weights can differ per vmapped trial
 
 
+def explained_variance(values: jax.Array, targets: jax.Array) -> jax.Array:
+    """1 - Var(targets - values) / Var(targets) over a rollout: 1 = the critic predicts the value
+    targets, 0 = no better than their mean, < 0 = worse. The critic's health in one number."""
+    return 1.0 - jnp.var(targets - values) / (jnp.var(targets) + 1e-8)
+
+
 class RecurrentPPO:
     """PPO with recurrent policies on a gymnax env. Static shapes here; numbers in ``PPOHyper``."""
 
@@ -256,6 +262,7 @@ class RecurrentPPO:
         state = state.replace(params=params, opt_state=opt_state, key=key, update=state.update + 1)
         metrics = jax.tree.map(jnp.mean, aux)
         metrics["learning_rate"] = lr
+        metrics["explained_variance"] = explained_variance(traj.value, targets)
         return state, metrics
 
     def chunk(self, state: RecurrentPPOState, num_updates: int):

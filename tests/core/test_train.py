@@ -55,6 +55,43 @@ def test_recurrent_ppo__replay_reproduces_acting_log_probs(name):
     np.testing.assert_allclose(np.asarray(out.value), np.asarray(traj.value), atol=2e-5)
 
 
+def _gae_reference(reward, value, done, last_value, gamma, lam):
+    """GAE written out step by step in NumPy: (T, B) advantages and value targets."""
+    T = reward.shape[0]
+    adv = np.zeros_like(reward)
+    next_adv, next_value = np.zeros_like(last_value), last_value
+    for t in reversed(range(T)):
+        live = 1.0 - done[t]
+        delta = reward[t] + gamma * next_value * live - value[t]
+        next_adv = delta + gamma * lam * live * next_adv
+        adv[t], next_value = next_adv, value[t]
+    return adv, adv + value
+
+
+def test_recurrent_ppo__gae_and_explained_variance_match_a_numpy_reference():
+    trainer = make_trainer(tiny(RECURRENT["lstm"], env={**TINY_ENV, "max_steps": 7}))
+    algo: RecurrentPPO = trainer.algo
+    state = trainer.init_state()
+    after, traj, _ = jax.jit(algo.collect)(state)
+    assert np.asarray(traj.done).any(), "the rollout should end episodes"
+    last_value = jax.jit(algo.policy_step, static_argnames="deterministic")(
+        after.params, after.carry, after.obs, after.start, after.key, deterministic=True
+    )[3]
+    gamma, lam = 0.9, 0.8
+    adv, targets = jax.jit(algo.gae)(traj, last_value, gamma, lam)
+    ref_adv, ref_targets = _gae_reference(
+        *(np.asarray(x, np.float64) for x in (traj.reward, traj.value, traj.done, last_value)),
+        gamma, lam,
+    )  # fmt: skip
+    np.testing.assert_allclose(np.asarray(adv), ref_adv, rtol=1e-4, atol=1e-4)
+    # the update reports how much of its value targets' variance the critic explained
+    state = state.replace(hyper=state.hyper.replace(gamma=jnp.float32(gamma), gae_lambda=jnp.float32(lam)))
+    _, metrics = jax.jit(algo.update)(state)
+    v = np.asarray(traj.value, np.float64)
+    expected = 1.0 - np.var(ref_targets - v) / np.var(ref_targets)
+    assert float(metrics["explained_variance"]) == pytest.approx(expected, abs=1e-3)
+
+
 COMBOS = {
     "ppo-mlp (rejax)": ({"kind": "mlp", "hidden_sizes": [16]}, None),
     "ppo-mlp (quicknav)": ({"kind": "mlp", "hidden_sizes": [16]},
