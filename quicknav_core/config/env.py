@@ -37,6 +37,13 @@ class RewardConfig(StrictModel):
     progress_reward * (d_{t-1} - potential_gamma * d'_t) / (max_wheel_speed * dt) with d'_t = 0 at
     the goal (``progress="potential"``: potential-based shaping with Φ = -distance, which leaves the
     optimal policy that of the sparse goal reward: circling near the goal earns nothing).
+
+    The same optimal policy is not the same learning problem. The shaping term's discounted sum
+    telescopes to Φ(s_0) - γ^T Φ(s_T), so what pulls an agent to the goal is γ^T·goal_reward against
+    the penalties, a thin margin at short discounts (γ 0.96, a goal 8 m away: about 2 over standing
+    still), while the paper's sign term pays every step of progress. Partially observed PPO agents
+    (LSTM, GTrXL) settled on standing still under it; the memory MLP and goal-observing agents did not
+    (``benchmarks/results/shaped_memory.json``, ``benchmarks/results/learning/report.md``).
     """
 
     step_penalty: float = Field(
