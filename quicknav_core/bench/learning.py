@@ -112,7 +112,7 @@ NOTES = (
     "progress term. Returns of shaped rows are not comparable with the paper-reward baselines.",
     "Shaped rows of the goal-hidden agents. The LSTM and GTrXL at the paper's sizes learned to stand "
     "still under shaping (0 % on every seed; the 'return' column is high because a parked robot "
-    "collects λp·(1-γ)·d per step, which discounting cancels). A one-change diagnosis on the train "
+    "collects λp·(1-γ)·d/(v·dt) per step, which discounting cancels). A one-change diagnosis on the train "
     "bank (`benchmarks/shaped_memory.py`, results in `benchmarks/results/shaped_memory.json`, 20M "
     "steps each): the paper reward 0.81 training success; shaped 0.00 with an accurate critic "
     "(explained variance 0.87); shaped with γ 0.99 0.00; the paper reward with γ 0.99 0.00 (parked "

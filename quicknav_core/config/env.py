@@ -39,7 +39,7 @@ class RewardConfig(StrictModel):
     optimal policy that of the sparse goal reward: circling near the goal earns nothing).
 
     The same optimal policy is not the same learning problem. The shaping term's discounted sum
-    telescopes to Φ(s_0) - γ^T Φ(s_T), so what pulls an agent to the goal is γ^T·goal_reward against
+    telescopes to γ^T Φ(s_T) - Φ(s_0), so what pulls an agent to the goal is γ^T·goal_reward against
     the penalties, a thin margin at short discounts (γ 0.96, a goal 8 m away: about 2 over standing
     still), while the paper's sign term pays every step of progress. PPO with an LSTM or GTrXL
     settled on standing still under it, even with the goal observed; PPO with an MLP or the memory
