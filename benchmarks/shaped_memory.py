@@ -3,8 +3,9 @@ train bank only (training success and the critic's explained variance per chunk;
 never touched).
 
 The learning report had PPO + LSTM 2x15 at 0.87 held-out success under the paper's reward (0.90 on
-the rerun seeds) and 0.00 under potential-based shaping (memory MLP: 0.94 and 0.93). Each arm below trains the
-paper-lstm preset with one change, same seed and budget, so the arms differ in one thing each:
+the rerun seeds) and 0.00 under potential-based shaping (memory MLP: 0.94 and 0.93). Each arm
+below trains the paper-lstm preset with one change, same seed and budget, so the arms differ in one
+thing each:
 
 - paper: the paper's sign-of-progress reward (the control);
 - shaped: Φ = -distance, γ 0.96 (the learning report's shaped row);
