@@ -45,7 +45,7 @@ COPY proto ./proto
 COPY clients ./clients
 COPY quicknav_core ./quicknav_core
 COPY quicknav_cli ./quicknav_cli
-COPY service ./service
+COPY quicknav_service ./quicknav_service
 RUN --mount=type=cache,target=/root/.cache/uv \
     uv sync --locked --no-dev --extra service --no-editable ${JAX_EXTRA:+--extra "$JAX_EXTRA"}
 

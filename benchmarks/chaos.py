@@ -243,7 +243,7 @@ def main() -> None:
             rec = get_json(client, f"/jobs/{jid}")
             if rec and rec["status"] in ("running", "queued") and rng.random() < 0.5:
                 try:
-                    client.post(f"/jobs/{jid}/cancel")
+                    client.post(f"/jobs/{jid}/cancel", json={})
                 except httpx.HTTPError:
                     pass
     chaos.join()
@@ -251,7 +251,7 @@ def main() -> None:
     log(f"faults over ({dict(faults)}); {len(accepted)} jobs accepted; waiting for them to end")
     for jid in cancel_asked:
         try:
-            client.post(f"/jobs/{jid}/cancel")
+            client.post(f"/jobs/{jid}/cancel", json={})
         except httpx.HTTPError:
             pass
 
@@ -289,7 +289,7 @@ def main() -> None:
                 bad_logs.append(jid)
     attempts = [final[j].get("attempts", 1) for j in final]
     # worker killed -> the job it held runs again: the lease must lapse (QUICKNAV_LEASE_S=6)
-    from service.jobs.redis_store import RedisJobStore
+    from quicknav_service.jobs.redis_store import RedisJobStore
 
     store = RedisJobStore(cluster.redis.url)
     reclaim = []

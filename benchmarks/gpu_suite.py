@@ -18,7 +18,7 @@ Stages (each writes its part of the JSON as soon as it ends, so a run cut short 
            envs per message, server on the accelerator, client on the CPU
 
 Writes benchmarks/results/gpu-suite-<backend>-<device>.json and a .md with the tables; with
---readme, also replaces README's block between the gpu-suite markers by those tables.
+--readme, also replaces the block between the gpu-suite markers of docs/performance.md by those tables.
 """
 
 from __future__ import annotations
@@ -281,7 +281,7 @@ def main() -> None:
     ap.add_argument("--minutes", type=float, default=25.0, help="time budget for the whole suite")
     ap.add_argument("--max-batch", type=int, default=1_048_576)
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks/results")
-    ap.add_argument("--readme", action="store_true", help="put the tables into README.md")
+    ap.add_argument("--readme", action="store_true", help="put the tables into docs/performance.md")
     args = ap.parse_args()
     stages = [s.strip() for s in args.stages.split(",") if s.strip()]
     unknown = set(stages) - {"env", "lidar", "train", "learning", "service"}
@@ -331,9 +331,11 @@ def main() -> None:
         report.setdefault("stage_seconds", {})[stage] = round(time.time() - t0, 1)
         save()
     if args.readme:
-        readme = ROOT / "README.md"
+        readme = ROOT / "docs" / "performance.md"
         text = readme.read_text()
-        if README_START in text and README_END in text:
+        if README_START not in text or README_END not in text:
+            log(f"--readme: {readme} has no {README_START} ... {README_END} block; tables not placed")
+        else:
             head, rest = text.split(README_START, 1)
             _, tail = rest.split(README_END, 1)
             readme.write_text(

@@ -1,14 +1,20 @@
-"""gRPC Rollout throughput and latency over loopback.
+"""gRPC Rollout throughput and latency over loopback, lock-step and asynchronous, against the same
+batch stepped in-process.
 
 Starts `quicknav rollout-server` in its own process on a free port, then drives one stream per
-batch size from this process with `quicknav_client.RolloutClient` (lock-step: each Step waits for
-its Transition, as an agent does), and reports env steps/s and the p50/p99 round trip per message.
-The same batch sizes are also stepped in-process with `BatchedEnv` (no gRPC), so the transport's
-share of the time is visible.
+batch size from this process with `quicknav_client.RolloutClient`:
 
-    uv run python benchmarks/rollout.py [--envs 1 64 1024 4096] [--seconds 3] [--out FILE]
+- lock-step: each Step waits for its Transition, as a plain agent does; env steps/s and the
+  p50/p99 round trip per message;
+- asynchronous (`--groups G`, default 2): the batch in G groups; the client keeps every group in
+  flight, sending a group's next actions as soon as its Transition arrives (EnvPool's send/recv),
+  so the server steps one group while another's messages travel;
+- in-process: the same batch stepped with `BatchedEnv` in this process (no gRPC), the anchor.
 
-Targets (issue 8): >= 1,000,000 env steps/s with 4,096 envs per message; p50 < 1 ms with 1 env.
+    uv run python benchmarks/rollout.py [--envs 1 64 1024 4096] [--groups 2] [--seconds 3]
+
+Goals (issue 27): asynchronous >= 0.9x in-process at 4,096 envs and >= 1M env steps/s; p50 round
+trip at 64 envs <= 0.5 ms.
 """
 
 from __future__ import annotations
@@ -76,6 +82,29 @@ def measure_stream(target: str, n: int, seconds: float, min_messages: int = 50) 
     }
 
 
+def measure_async(target: str, n: int, groups: int, seconds: float, min_messages: int = 50) -> dict:
+    """Every group in flight: send a group's next actions as soon as its Transition arrives."""
+    k = n // groups
+    rng = np.random.default_rng(0)
+    actions = [rng.uniform(-1, 1, (k, 2)).astype(np.float32) for _ in range(16)]
+    with RolloutClient(target) as rc:
+        rc.start(num_envs=n, seed=0, config=CONFIG, groups=groups)
+        for g in range(groups):
+            rc.send(actions[g % 16], group=g)
+        for i in range(20 * groups):  # warm-up
+            t = rc.recv()
+            rc.send(actions[i % 16], group=t.group)
+        received = 0
+        begin = time.perf_counter()
+        while received < min_messages or time.perf_counter() - begin < seconds:
+            t = rc.recv()
+            received += 1
+            rc.send(actions[received % 16], group=t.group)
+        total = time.perf_counter() - begin
+    return {"num_envs": n, "groups": groups, "messages": received,
+            "env_steps_per_s": k * received / total}  # fmt: skip
+
+
 def measure_local(n: int, seconds: float) -> dict:
     """The same lock-step loop with BatchedEnv in this process: the env's share of a round trip."""
     from quicknav_core.config import EnvConfig
@@ -102,9 +131,24 @@ def measure_local(n: int, seconds: float) -> dict:
     }
 
 
+def _ratios(streams: list[dict], asynchronous: list[dict], local: list[dict]) -> dict:
+    """Per batch size: lock-step and asynchronous env steps/s over the in-process figure."""
+    out = {}
+    for loc in local:
+        n, base = loc["num_envs"], loc["env_steps_per_s"]
+        row = {}
+        for mode, found in (("lock_step", streams), ("async", asynchronous)):
+            for r in found:
+                if r["num_envs"] == n:
+                    row[mode] = r["env_steps_per_s"] / base
+        out[str(n)] = row
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--envs", type=int, nargs="+", default=[1, 64, 1024, 4096])
+    ap.add_argument("--groups", type=int, default=2, help="groups of the asynchronous mode")
     ap.add_argument("--seconds", type=float, default=3.0, help="measuring time per batch size")
     ap.add_argument(
         "--cpu-devices", type=int, default=None, help="passed to rollout-server (default 1)"
@@ -125,13 +169,18 @@ def main() -> None:
         if "listening" not in line:
             raise SystemExit(f"rollout-server did not start: {line}{server.stdout.read()}")
         target = f"127.0.0.1:{port}"
-        streams = []
+        streams, asynchronous = [], []
         for n in args.envs:
             r = measure_stream(target, n, args.seconds)
             streams.append(r)
-            print(f"gRPC  {n:>6} envs/msg: {r['env_steps_per_s']:>12,.0f} env steps/s,"
+            print(f"gRPC lock-step {n:>6} envs: {r['env_steps_per_s']:>12,.0f} env steps/s,"
                   f" round trip p50 {r['rtt_p50_ms']:.3f} ms, p99 {r['rtt_p99_ms']:.3f} ms",
                   flush=True)  # fmt: skip
+            if n >= 2 * args.groups and n % args.groups == 0:
+                a = measure_async(target, n, args.groups, args.seconds)
+                asynchronous.append(a)
+                print(f"gRPC async     {n:>6} envs: {a['env_steps_per_s']:>12,.0f} env steps/s"
+                      f" ({args.groups} groups of {n // args.groups})", flush=True)  # fmt: skip
     finally:
         server.terminate()
         server.wait(10)
@@ -162,9 +211,14 @@ def main() -> None:
             "server_cpu_devices": args.cpu_devices or "default",
         },
         "streams": streams,
+        "async": asynchronous,
         "local": local,
-        "targets": {"env_steps_per_s_4096": 1_000_000, "rtt_p50_ms_1_env": 1.0},
-    }
+        "ratios_to_in_process": _ratios(streams, asynchronous, local),
+        "goals": {"async_ratio_4096": 0.9, "env_steps_per_s_4096": 1_000_000,
+                  "rtt_p50_ms_64_envs": 0.5},
+    }  # fmt: skip
+    for n, ratio in result["ratios_to_in_process"].items():
+        print(f"{n:>6} envs: " + ", ".join(f"{k} {v:.2f}x in-process" for k, v in ratio.items()))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2))
     print(f"wrote {args.out}")

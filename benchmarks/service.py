@@ -158,14 +158,14 @@ def sse_latency(store, n_events: int = 200) -> dict:
 def warm_vs_cold(data_dir: Path) -> dict:
     """Time from claim to first progress for the same train job, twice, in one worker."""
     from quicknav_core.config import resolve_train
-    from service.jobs.sqlite_store import SQLiteJobStore
-    from service.settings import Settings
-    from service.worker import Worker
+    from quicknav_service.jobs.sqlite_store import SQLiteJobStore
+    from quicknav_service.settings import Settings
+    from quicknav_service.worker import Worker
 
     settings = Settings(data_dir=data_dir, embedded_worker=False)
     store = SQLiteJobStore(data_dir / "jobs.db")
     worker = Worker(store, settings, worker_id="bench")
-    from service.worker import _enable_jax_cache
+    from quicknav_service.worker import _enable_jax_cache
 
     _enable_jax_cache(settings)
     request = {"preset": "demo", "overrides": {"total_steps": 65536, "chunk_steps": 32768}}
@@ -187,7 +187,7 @@ def warm_vs_cold(data_dir: Path) -> dict:
 
 
 def main() -> None:
-    from service.jobs.redis_store import RedisJobStore
+    from quicknav_service.jobs.redis_store import RedisJobStore
 
     r = redis.Redis.from_url(REDIS_URL)
     r.flushdb()

@@ -30,8 +30,8 @@ import redis  # noqa: E402
 
 from quicknav_core.bench.machine import machine_info  # noqa: E402
 from quicknav_core.config import resolve_sweep  # noqa: E402
-from service.jobs.models import JobKind  # noqa: E402
-from service.jobs.redis_store import RedisJobStore  # noqa: E402
+from quicknav_service.jobs.models import JobKind  # noqa: E402
+from quicknav_service.jobs.redis_store import RedisJobStore  # noqa: E402
 
 
 def run(workers: int, trials: int, url: str, total_steps: int) -> dict:

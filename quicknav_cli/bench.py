@@ -257,6 +257,15 @@ def bench_learning(
             " report until its new run is evaluated.",
         ),
     ] = False,
+    rerun_before: Annotated[
+        str | None,
+        typer.Option(
+            metavar="VERSION",
+            help="Also retrain the chosen rows' seeds trained by a QuickNav older than VERSION"
+            " (e.g. 0.2.0: SAC trained 64x64 before it); each stays in the report until its new"
+            " run is evaluated.",
+        ),
+    ] = None,
 ) -> None:
     """The paper's Tables 1 and 2: train with several seeds, evaluate on held-out rooms, report."""
     from quicknav_core.bench.learning import ROW_KEYS, run_learning_bench
@@ -268,7 +277,36 @@ def bench_learning(
     enable_compilation_cache()
     markdown, _ = run_learning_bench(
         out, runs, row, seeds, scale, say=lambda m: console.print(m, highlight=False),
-        rerun_scoreless=rerun_scoreless,
+        rerun_scoreless=rerun_scoreless, rerun_before=rerun_before,
     )  # fmt: skip
     console.print(markdown, highlight=False, markup=False, soft_wrap=True)
     console.print(f"wrote {out}/report.md, report.json and profiles.png")
+
+
+@app.command("time-to-target")
+def bench_time_to_target(
+    row: Annotated[
+        list[str] | None,
+        typer.Option("--row", help="Rows to run (default all): ppo ppo-fast sac td3 mlp-memory lstm gtrxl."),
+    ] = None,
+    seeds: Annotated[int, typer.Option(min=1, max=10, help="Warm runs (seeds) per row.")] = 3,
+    scale: Annotated[
+        float, typer.Option(min=0.001, max=10.0, help="Scale of the time caps (smoke runs).")
+    ] = 1.0,
+    out: Annotated[Path, typer.Option(help="Folder for time_to_target.json.")] = Path(
+        "benchmarks/results"
+    ),
+    report_only: Annotated[
+        bool, typer.Option("--report", help="Only print the table of what is recorded (and the peers').")
+    ] = False,
+) -> None:
+    """Wall-clock time until held-out success reaches 90 %, compile included, cold and warm cache."""
+    from quicknav_core.bench import time_to_target as ttt
+
+    bad = [r for r in row or [] if r not in ttt.ROW_KEYS]
+    if bad:
+        fail(f"--row {bad[0]!r}: allowed values are {', '.join(ttt.ROW_KEYS)}")
+    if not report_only:
+        ttt.run_bench(row, seeds, out, scale, say=lambda m: console.print(m, highlight=False))
+    console.print(ttt.report(out / "time_to_target.json", out / "time_to_target_peers.json"),
+                  highlight=False, markup=False, soft_wrap=True)  # fmt: skip

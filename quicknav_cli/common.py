@@ -12,6 +12,8 @@ import typer
 from rich.console import Console
 
 console = Console()
+# errors and warnings go to stderr, so a script reading stdout gets only the results
+err_console = Console(stderr=True)
 
 SetOpt = Annotated[
     list[str] | None,
@@ -38,9 +40,15 @@ PrintConfigOpt = Annotated[
 
 def fail(message: str, code: int = 2) -> NoReturn:
     """Print an error a person can act on and exit (the message is never read as rich markup)."""
-    console.print("[bold red]error:[/] ", end="", highlight=False)
-    console.print(message, highlight=False, soft_wrap=True, markup=False)
+    err_console.print("[bold red]error:[/] ", end="", highlight=False)
+    err_console.print(message, highlight=False, soft_wrap=True, markup=False)
     raise typer.Exit(code)
+
+
+def warn(message: str) -> None:
+    """A warning on stderr (deprecated options, ...); the command goes on."""
+    err_console.print("[yellow]warning:[/] ", end="", highlight=False)
+    err_console.print(message, highlight=False, soft_wrap=True, markup=False)
 
 
 def sets(items: list[str] | None) -> dict[str, Any]:
@@ -121,13 +129,18 @@ def service_settings(**overrides):
     from pydantic import ValidationError
 
     try:
-        from service.settings import Settings
+        from quicknav_service.settings import Settings
     except ImportError as e:
         fail(
             f"the job service is not installed ({e.name} is missing): pip install 'quicknav[service]'"
         )
     try:
-        return Settings(**{k: v for k, v in overrides.items() if v is not None})
+        settings = Settings(**{k: v for k, v in overrides.items() if v is not None})
     except ValidationError as e:
+        # the message names the variable, never its value (a URL may hold a password)
         fail("invalid service settings (QUICKNAV_* variables / options):\n  " + "\n  ".join(
             f"QUICKNAV_{'_'.join(map(str, err['loc'])).upper()}: {err['msg']}" for err in e.errors()))  # fmt: skip
+    from quicknav_service import redact
+
+    redact.install(settings)  # before any log handler takes hold of stdout or stderr
+    return settings

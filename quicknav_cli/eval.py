@@ -17,6 +17,7 @@ from quicknav_cli.common import (
     read_json,
     resolved,
     sets,
+    warn,
 )
 
 
@@ -108,6 +109,8 @@ def eval_cmd(
                       f" {b['success_rate']:.0%}, SPL {b['spl']:.2f}")  # fmt: skip
     written = sorted(p.name for p in Path(out_dir).iterdir() if p.is_file())
     console.print(f"wrote {out_dir}/: {', '.join(written)}")
+    for message in result.get("warnings", []):
+        warn(message)
 
 
 def print_eval(result) -> None:

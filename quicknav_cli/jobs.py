@@ -10,7 +10,7 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
-from quicknav_cli.common import console, fail, read_json, sets
+from quicknav_cli.common import console, err_console, fail, read_json, sets, warn
 
 app = typer.Typer(
     help="Jobs on a QuickNav service (quicknav serve): submit, list, follow, cancel, download.",
@@ -70,41 +70,122 @@ def _when(t: float | None) -> str:
     return "" if t is None else time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(t))
 
 
+def _elapsed(seconds: float) -> str:
+    seconds = max(0, int(seconds))
+    return f"{seconds} s" if seconds < 120 else f"{seconds // 60} min {seconds % 60:02d} s"
+
+
+class JobProgress:
+    """A job's progress bar, fed by its events; readable at 80 columns.
+
+    While the job compiles (metrics ``phase == "compiling"``) the bar pulses and says
+    ``compiling 12 s`` (time since ``phase_since``, ticking) instead of a percentage that has not
+    started; the latest metrics go on a second line, so they never squeeze the bar.
+    """
+
+    def __init__(self, job, console: Console, clock=None):
+        import time
+
+        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+        from rich.table import Column
+
+        self.clock = clock or time.time
+        self.name = f"{job.kind} {job.id[:8]}"
+        self.status = job.status
+        self.phase: str | None = None
+        self.phase_since: float | None = None
+        cols = (TextColumn("{task.description}", table_column=Column(no_wrap=True)),
+                BarColumn(bar_width=24), TextColumn("{task.fields[done]}", justify="right"),
+                TimeElapsedColumn())  # fmt: skip
+        self.progress = Progress(*cols, console=console)
+        self.task = self.progress.add_task(self.name, total=1.0, completed=job.progress, done="",
+                                           info="")  # fmt: skip
+        self.update({"status": job.status, "progress": job.progress, "metrics": job.metrics})
+
+    def update(self, event: dict) -> None:
+        """Take one event (status, progress, metrics) into the bar."""
+        if isinstance(event.get("status"), str):
+            self.status = event["status"]
+        elif event.get("type") in ("started", "succeeded", "failed", "cancelled", "queued"):
+            self.status = "running" if event["type"] == "started" else event["type"]
+        metrics = event.get("metrics") or {}
+        if isinstance(metrics.get("phase"), str):
+            if metrics["phase"] != self.phase:
+                self.phase_since = None
+            self.phase = metrics["phase"]
+            since = metrics.get("phase_since")
+            if isinstance(since, int | float):
+                self.phase_since = float(since)
+            elif self.phase_since is None:
+                self.phase_since = self.clock()
+        update: dict = {}
+        if isinstance(event.get("progress"), int | float):
+            update["completed"] = event["progress"]
+        info = metrics_summary(metrics)
+        if info:
+            update["info"] = info
+        self.progress.update(self.task, **update)
+        self.refresh()
+
+    @property
+    def compiling(self) -> bool:
+        """The job runs but has not finished compiling its first chunk (or batch)."""
+        return self.status == "running" and self.phase == "compiling"
+
+    def refresh(self) -> None:
+        """Re-label the bar (called on every event and before each render, so time ticks)."""
+        task = self.progress.tasks[0]
+        if self.compiling:
+            since = self.phase_since if self.phase_since is not None else self.clock()
+            label, done, total = f"compiling {_elapsed(self.clock() - since)}", "", None
+        else:
+            label, done, total = self.status, f"{task.completed:.0%}", 1.0
+        self.progress.update(self.task, description=f"{self.name} {label}", done=done,
+                             total=total)  # fmt: skip
+
+    def renderable(self):
+        """What the terminal shows now: the bar line, then the metrics line."""
+        from rich.console import Group
+        from rich.text import Text
+
+        self.refresh()
+        info = self.progress.tasks[0].fields.get("info") or ""
+        lines = [self.progress.make_tasks_table(self.progress.tasks)]
+        # the metrics on a line of their own below the bar: an 80-column terminal keeps its bar
+        if info:
+            lines.append(Text(f"  {info}", no_wrap=True, overflow="ellipsis", style="dim"))
+        return Group(*lines)
+
+
 def follow_job(job) -> None:
     """Show a progress bar until the job finishes; exit 0 if it succeeded, 1 otherwise."""
-    from rich.progress import (
-        BarColumn,
-        Progress,
-        TaskProgressColumn,
-        TextColumn,
-        TimeElapsedColumn,
-    )
+    from rich.live import Live
 
-    name = f"{job.kind} {job.id[:8]}"
-    cols = (TextColumn("{task.description}"), BarColumn(), TaskProgressColumn(),
-            TimeElapsedColumn(), TextColumn("{task.fields[info]}"))  # fmt: skip
-    with Progress(*cols, console=console) as progress:
-        task = progress.add_task(f"{name} {job.status}", total=1.0, completed=job.progress,
-                                 info=metrics_summary(job.metrics))  # fmt: skip
+    bar = JobProgress(job, console)
+    # the bar is re-rendered on each refresh, so "compiling 12 s" ticks between events
+    with Live(console=console, refresh_per_second=4, get_renderable=bar.renderable) as live:
+        job.wait(on_event=lambda event: (bar.update(event), live.refresh()))
+    if not console.is_terminal:
+        console.line()  # a pipe or a log gets the bar's last frame without its line end
+    report_finished(job)
 
-        def on_event(event: dict) -> None:
-            update = {}
-            if isinstance(event.get("status"), str):
-                update["description"] = f"{name} {event['status']}"
-            if isinstance(event.get("progress"), int | float):
-                update["completed"] = event["progress"]
-            info = metrics_summary(event.get("metrics") or {})
-            if info:
-                update["info"] = info
-            progress.update(task, **update)
 
-        job.wait(on_event=on_event)
+def report_finished(job) -> None:
+    """The finished job's status line, its warnings and error (on stderr); exit 1 unless it
+    succeeded."""
     colour = "green" if job.succeeded else "red"
     console.print(f"job {job.id}: [{colour}]{job.status}[/]", highlight=False)
+    print_warnings(job)
     if job.error:
-        console.print(f"error: {job.error}", highlight=False, markup=False, soft_wrap=True)
+        err_console.print(f"error: {job.error}", highlight=False, markup=False, soft_wrap=True)
     if not job.succeeded:
         raise typer.Exit(1)
+
+
+def print_warnings(job) -> None:
+    """Each of the job's warnings (an artifact that failed to render) on stderr."""
+    for warning in job.warnings:
+        err_console.print(f"warning: {warning}", highlight=False, markup=False, soft_wrap=True)
 
 
 @app.command("submit")
@@ -113,7 +194,7 @@ def jobs_submit(
     kind: Annotated[str, typer.Argument(help="train, sweep or eval.")],
     preset: Annotated[
         str | None,
-        typer.Option(help="train: a preset (default demo). (sweep: old name of --space.)"),
+        typer.Option(help="train: a preset (default demo). (sweep: deprecated name of --space.)"),
     ] = None,
     space: Annotated[
         str | None, typer.Option(help="sweep: a built-in search space (ppo, lstm, ...).")
@@ -122,6 +203,15 @@ def jobs_submit(
         Path | None, typer.Option("--config", help="TrainConfig or SweepConfig JSON file.")
     ] = None,
     set_: JobSetOpt = None,
+    trials: Annotated[
+        int | None, typer.Option(min=1, help="sweep: finished trials wanted.")
+    ] = None,
+    parallel: Annotated[
+        int | None, typer.Option(min=1, max=1024, help="sweep: trials asked at once.")
+    ] = None,
+    total_steps: Annotated[
+        int | None, typer.Option(min=1, help="train: env steps; sweep: env steps per trial.")
+    ] = None,
     job: Annotated[
         str | None, typer.Option("--job", help="eval: the train job whose checkpoint to evaluate.")
     ] = None,
@@ -132,8 +222,13 @@ def jobs_submit(
     seed: Annotated[int, typer.Option(min=0, help="eval: episode seed.")] = 0,
     split: Annotated[str, typer.Option(help="eval: room bank, test (held out) or train.")] = "test",
     deterministic: Annotated[
-        bool, typer.Option("--deterministic/--stochastic", help="eval: act with the mean, or sample.")
+        bool,
+        typer.Option("--deterministic/--no-deterministic",
+                     help="eval: act with the policy's mean (default), or sample its actions."),
     ] = True,
+    stochastic: Annotated[
+        bool, typer.Option("--stochastic", hidden=True, help="Deprecated: --no-deterministic.")
+    ] = False,
     follow: Annotated[
         bool, typer.Option("--follow", help="Wait with a progress bar until the job finishes.")
     ] = False,
@@ -150,9 +245,18 @@ def jobs_submit(
         fail("--job and --policy are for eval jobs")
     if kind == "eval" and (preset or config or space):
         fail("--preset, --space and --config are for train and sweep jobs; eval takes --job or --policy")
+    if kind != "sweep" and (trials or parallel):
+        fail("--trials and --parallel are for sweep jobs")
+    if kind == "eval" and total_steps:
+        fail("--total-steps is for train and sweep jobs")
+    if stochastic:
+        warn("--stochastic is deprecated: write --no-deterministic (the API's field is"
+             " `deterministic`)")  # fmt: skip
+        deterministic = False
     if kind == "sweep" and preset is not None:
         if space is not None:
-            fail("give --space only (--preset is its old name for sweeps)")
+            fail("give --space only (--preset is its deprecated name for sweeps)")
+        warn(f"--preset is deprecated for sweeps: write --space {preset}")
         space, preset = preset, None
     if kind == "train" and space is not None:
         fail("--space is for sweep jobs; train takes --preset or --config")
@@ -160,6 +264,8 @@ def jobs_submit(
         fail("give either a preset/space or --config, not both")
     with service_client(ctx) as client:
         if kind == "train":
+            if total_steps is not None:
+                overrides["total_steps"] = total_steps
             if config is not None:
                 submitted = client.train(config=read_json(config), overrides=overrides)
             else:
@@ -167,8 +273,10 @@ def jobs_submit(
         elif kind == "sweep":
             if config is None and space is None:
                 fail("give --space SPACE (a built-in search space) or --config SWEEP.json")
-            target = read_json(config) if config is not None else space
-            submitted = client.sweep(target, overrides=overrides)
+            submitted = client.sweep(
+                space=space, config=read_json(config) if config is not None else None,
+                trials=trials, parallel=parallel, total_steps=total_steps, overrides=overrides,
+            )  # fmt: skip
         else:
             submitted = client.evaluate(job=job, policy=policy, episodes=episodes, seed=seed,
                                         env=overrides, split=split, deterministic=deterministic)  # fmt: skip
@@ -176,6 +284,29 @@ def jobs_submit(
                       highlight=False)  # fmt: skip
         if follow:
             follow_job(submitted)
+
+
+def progress_cell(job) -> str:
+    """The list's progress column: a percentage while it means something, a word otherwise."""
+    if job.status == "failed" or job.status == "cancelled":
+        return "–"  # how far it got is in the error; a full bar would read as done
+    if job.status == "running" and job.phase == "compiling":
+        return "compiling"
+    return f"{job.progress:.0%}"
+
+
+def latest_cell(job):
+    """The list's last column: why a failed job failed, else its latest numbers."""
+    from rich.text import Text
+
+    if job.error:
+        reason = job.error.strip().splitlines()[-1] if job.error.strip() else job.error
+        return Text(reason, style="red")
+    text = Text(metrics_summary(job.metrics))
+    if job.warnings:
+        text.append(f"  ({len(job.warnings)} warning{'s' if len(job.warnings) > 1 else ''})",
+                    style="yellow")  # fmt: skip
+    return text
 
 
 @app.command("list")
@@ -188,7 +319,7 @@ def jobs_list(
     limit: Annotated[int, typer.Option(min=1, max=500, help="Jobs to show.")] = 20,
     offset: Annotated[int, typer.Option(min=0, help="Skip this many (newest first).")] = 0,
 ) -> None:
-    """List jobs, newest first."""
+    """List jobs, newest first (a failed job shows why it failed)."""
     from rich.table import Table
 
     with service_client(ctx) as client:
@@ -197,12 +328,12 @@ def jobs_list(
         title=f"{len(page)} of {page.count} jobs" + (f" from #{offset + 1}" if offset else "")
     )
     table.add_column("id", no_wrap=True)
-    for col in ("kind", "status", "progress", "tries", "created", "latest"):
+    for col in ("kind", "status", "progress", "tries", "created"):
         table.add_column(col, justify="right" if col in ("progress", "tries") else "left")
+    table.add_column("latest / reason", overflow="fold")
     for j in page:
-        latest = f"[red]{j.error}[/]" if j.error else metrics_summary(j.metrics)
-        table.add_row(j.id, j.kind, j.status, f"{j.progress:.0%}", str(j.attempts),
-                      _when(j.created_at), latest)  # fmt: skip
+        table.add_row(j.id, j.kind, j.status, progress_cell(j), str(j.attempts),
+                      _when(j.created_at), latest_cell(j))  # fmt: skip
     Console(width=max(console.width, 140)).print(table)
 
 
@@ -212,7 +343,9 @@ def jobs_show(
     job_id: Annotated[str, typer.Argument(help="The job's id.")],
     as_json: Annotated[bool, typer.Option("--json", help="Print the server's JSON.")] = False,
 ) -> None:
-    """Show one job: status, progress, latest metrics, result or error, request."""
+    """Show one job: status, progress, latest metrics, result or error, warnings, request."""
+    import time
+
     from rich.table import Table
 
     with service_client(ctx) as client:
@@ -227,8 +360,14 @@ def jobs_show(
             ("progress", f"{j.progress:.1%}"), ("attempts", str(j.attempts)),
             ("created", _when(j.created_at)), ("started", _when(j.started_at)),
             ("finished", _when(j.finished_at))]  # fmt: skip
+    if j.status == "running" and j.phase == "compiling":
+        since = j.metrics.get("phase_since")
+        rows.append(("phase", "compiling" + (f" for {_elapsed(time.time() - since)}"
+                                             if isinstance(since, int | float) else "")))  # fmt: skip
     if j.error:
         rows.append(("error", j.error))
+    for warning in j.warnings:
+        rows.append(("warning", warning))
     if j.metrics:
         rows.append(("metrics", json.dumps(j.metrics)))
     if j.result is not None:
@@ -287,7 +426,7 @@ def jobs_download(
         Path | None, typer.Option("--out", help="File or folder (default: the name's basename).")
     ] = None,
 ) -> None:
-    """Download one of a job's artifacts."""
+    """Download one of a job's artifacts (the SDK's `download(job_id, name, out)`)."""
     with service_client(ctx) as client:
-        path = client.download(job_id, name, out)
+        path = client.download(job_id, name, out=out)
     console.print(f"wrote {path} ({path.stat().st_size:,} bytes)", highlight=False)

@@ -14,17 +14,78 @@ same function the service calls, so a flag means the same thing here and in a jo
 
 from __future__ import annotations
 
+from typing import Annotated
+
 import typer
+from typer.core import TyperGroup
 
 from quicknav_cli import bench, env, jobs, serve, sweep, train
 from quicknav_cli import eval as eval_
+from quicknav_cli.common import fail
+
+
+def version() -> str:
+    """QuickNav's version, from the installed package's metadata (one source)."""
+    import quicknav_core
+
+    found = getattr(quicknav_core, "__version__", None)
+    if found is None:  # a quicknav_core without the attribute: ask the metadata directly
+        from importlib.metadata import version as package_version
+
+        found = package_version("quicknav")
+    return found
+
+
+def _print_version(value: bool) -> None:
+    if value:
+        print(f"quicknav {version()}")
+        raise typer.Exit()
+
+
+def _space_separated_set(args: list[str]) -> str | None:
+    """``--set key value`` (a space where ``=`` belongs) in the command line, as a message."""
+    for i, arg in enumerate(args[:-1]):
+        key = args[i + 1]
+        if arg == "--set" and "=" not in key and not key.startswith("-"):
+            given = args[i + 2] if i + 2 < len(args) else "-"
+            value = "VALUE" if given.startswith("-") else given
+            return (f"--set {key}: expected key=value with no space around '=', e.g."
+                    f" --set {key}={value}")  # fmt: skip
+    return None
+
+
+class QuickNavGroup(TyperGroup):
+    """The root command: reads the whole command line before any subcommand parses it."""
+
+    def parse_args(self, ctx, args: list[str]) -> list[str]:
+        # `--set k v` would otherwise end in click's "unexpected extra argument (v)", which does
+        # not say what to write instead
+        message = _space_separated_set(args)
+        if message:
+            fail(message)
+        return super().parse_args(ctx, args)
+
 
 app = typer.Typer(
     name="quicknav",
     help="QuickNav: room navigation for reinforcement learning in pure JAX.",
     no_args_is_help=True,
     pretty_exceptions_enable=False,
+    cls=QuickNavGroup,
 )
+
+
+@app.callback()
+def root(
+    show_version: Annotated[
+        bool,
+        typer.Option("--version", callback=_print_version, is_eager=True,
+                     help="Print QuickNav's version and exit."),
+    ] = False,
+) -> None:
+    """QuickNav: room navigation for reinforcement learning in pure JAX."""
+
+
 app.add_typer(env.app, name="env")
 app.command("train")(train.train)
 app.command("presets")(train.presets)

@@ -16,6 +16,7 @@ from quicknav_cli.common import (
     expose_cpu_devices,
     fail,
     service_settings,
+    warn,
 )
 
 
@@ -54,13 +55,15 @@ def serve(
                                 grpc_port=grpc_port, grpc_enabled=False if no_grpc else None)  # fmt: skip
     import uvicorn
 
-    from service.api.main import create_app
+    from quicknav_service import redact
+    from quicknav_service.api.http import uvicorn_options
+    from quicknav_service.api.main import create_app
 
     if settings.host not in ("127.0.0.1", "localhost", "::1") and not settings.api_token:
-        console.print(f"[yellow]warning:[/] binding {settings.host} without QUICKNAV_API_TOKEN: anyone who can"
-                      " reach this port can submit jobs", soft_wrap=True)  # fmt: skip
+        warn(f"binding {settings.host} without QUICKNAV_API_TOKEN: anyone who can reach this port"
+             " can submit jobs")  # fmt: skip
     store = (
-        "redis " + settings.redis_url
+        "redis " + redact.redact_url(settings.redis_url)
         if settings.redis_url
         else f"sqlite {settings.data_dir / 'jobs.db'}"
     )
@@ -71,7 +74,7 @@ def serve(
     if settings.grpc_enabled:
         import socket
 
-        from service.settings import make_store
+        from quicknav_service.settings import make_store
 
         # the API process starts JAX only when a rollout stream needs it
         rollout, announcer = start_rollout(settings, make_store(settings), settings.grpc_port,
@@ -89,12 +92,12 @@ def serve(
                 import tempfile
 
                 os.environ["PROMETHEUS_MULTIPROC_DIR"] = tempfile.mkdtemp(prefix="quicknav-prom-")
-            uvicorn.run("service.api.main:create_app", factory=True, host=settings.host,
+            uvicorn.run("quicknav_service.api.main:create_app", factory=True, host=settings.host,
                         port=settings.port, workers=api_workers, log_level="warning",
-                        **tls)  # fmt: skip
+                        **uvicorn_options(settings, api_workers), **tls)  # fmt: skip
         else:
             uvicorn.run(create_app(settings), host=settings.host, port=settings.port,
-                        log_level="info", **tls)  # fmt: skip
+                        log_level="info", **uvicorn_options(settings), **tls)  # fmt: skip
     finally:
         if announcer is not None:
             announcer.stop()
@@ -124,12 +127,11 @@ def rollout_server(
     if cpu_devices > 1:
         expose_cpu_devices(cpu_devices)
     enable_compilation_cache()
-    from service.rollout.server import serve_forever
+    from quicknav_service.rollout.server import serve_forever
 
     settings = service_settings(host=host, grpc_port=port)
     if settings.host not in ("127.0.0.1", "localhost", "::1") and not settings.api_token:
-        console.print(f"[yellow]warning:[/] binding {settings.host} without QUICKNAV_API_TOKEN",
-                      soft_wrap=True)  # fmt: skip
+        warn(f"binding {settings.host} without QUICKNAV_API_TOKEN")
     try:
         serve_forever(settings)
     except OSError as e:
@@ -157,8 +159,8 @@ def worker(
     """A worker process: claims jobs from the store (Redis for several machines), runs them."""
     import signal
 
-    from service.settings import make_store
-    from service.worker import Worker
+    from quicknav_service.settings import make_store
+    from quicknav_service.worker import Worker
 
     settings = service_settings()
     store = make_store(settings)
@@ -191,8 +193,8 @@ def worker(
 
 def start_rollout(settings, store, port: int, name: str, probe_device: bool = True):
     """The gRPC Rollout server of this process, announced in the store for the API to list."""
-    from service.rollout.announce import EndpointAnnouncer, advertised_address
-    from service.rollout.server import BackgroundServer
+    from quicknav_service.rollout.announce import EndpointAnnouncer, advertised_address
+    from quicknav_service.rollout.server import BackgroundServer
 
     try:
         rollout = BackgroundServer(settings, port=port).start()

@@ -17,6 +17,7 @@ from quicknav_cli.common import (
     read_json,
     resolved,
     sets,
+    warn,
 )
 
 
@@ -54,7 +55,7 @@ def sweep(
         typer.Option(help="Built-in search space: ppo sac td3 mlp lstm gtrxl (the paper's)."),
     ] = None,
     preset: Annotated[
-        str | None, typer.Option(hidden=True, help="Old name of --space (kept for one release).")
+        str | None, typer.Option(hidden=True, help="Deprecated name of --space.")
     ] = None,
     config: Annotated[Path | None, typer.Option("--config", help="SweepConfig JSON file.")] = None,
     trials: Annotated[
@@ -96,7 +97,8 @@ def sweep(
 
     if preset is not None:
         if space is not None:
-            fail("give --space only (--preset is its old name)")
+            fail("give --space only (--preset is its deprecated name)")
+        warn(f"--preset is deprecated for sweeps: write --space {preset}")
         space = preset
     request = sweep_request(space, config, trials, parallel, total_steps, objective, storage, seed,
                             set_)  # fmt: skip

@@ -6,6 +6,8 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
+from rich.progress import Progress, ProgressColumn
+from rich.text import Text
 
 from quicknav_cli.common import (
     PrintConfigOpt,
@@ -17,6 +19,7 @@ from quicknav_cli.common import (
     read_json,
     resolved,
     sets,
+    warn,
 )
 
 # --network NAME: the network section it sets (other fields keep the preset's values)
@@ -81,13 +84,7 @@ def train(
     print_only: PrintConfigOpt = False,
 ) -> None:
     """Train an agent; writes config.json, metrics.jsonl, a checkpoint and learning_curve.png."""
-    from rich.progress import (
-        BarColumn,
-        Progress,
-        TextColumn,
-        TimeElapsedColumn,
-        TimeRemainingColumn,
-    )
+    from rich.progress import BarColumn, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
     from quicknav_core.config import resolve_train
     from quicknav_core.train.run import read_config, train_run
@@ -122,12 +119,12 @@ def train(
         f" {cfg.num_envs} envs, grid {cfg.env.grid_size}"
         f"{f', {len(devices)} devices' if len(devices) > 1 else ''} -> {run_dir}"
     )
+    # fits 80 columns: the bar line, then the latest metrics on a line of their own
     columns = (
-        TextColumn("[progress.description]{task.description}"), BarColumn(),
-        TextColumn("{task.completed:,.0f}/{task.total:,.0f} steps"), TimeElapsedColumn(),
-        TimeRemainingColumn(), TextColumn("{task.fields[info]}"),
+        TextColumn("[progress.description]{task.description}"), BarColumn(bar_width=24),
+        StepsColumn(), TimeElapsedColumn(), TimeRemainingColumn(),
     )  # fmt: skip
-    with Progress(*columns, console=console) as progress:
+    with MetricsProgress(*columns, console=console) as progress:
         task = progress.add_task("compiling", total=cfg.total_steps, info="")
 
         def on_chunk(r) -> bool:
@@ -156,6 +153,29 @@ def train(
     console.print(
         f"run folder: {run_dir} (config.json, metrics.jsonl, checkpoint/, learning_curve.png)"
     )
+    for message in summary.get("warnings", []):
+        warn(message)
+
+
+def _steps(n: float) -> str:
+    return f"{n / 1e6:.2f}M" if n >= 1e6 else f"{n / 1e3:.0f}k" if n >= 1e4 else f"{n:.0f}"
+
+
+class StepsColumn(ProgressColumn):
+    """``1.50M/1.50M steps``: env steps done and planned, short enough for an 80-column bar."""
+
+    def render(self, task) -> Text:
+        return Text(f"{_steps(task.completed)}/{_steps(task.total or 0)} steps")
+
+
+class MetricsProgress(Progress):
+    """A rich Progress that shows its task's ``info`` field on a second line below the bar."""
+
+    def get_renderables(self):
+        yield self.make_tasks_table(self.tasks)
+        info = self.tasks[0].fields.get("info") if self.tasks else ""
+        if info:
+            yield Text(f"  {info}", no_wrap=True, overflow="ellipsis", style="dim")
 
 
 def presets() -> None:

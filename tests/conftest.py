@@ -25,6 +25,8 @@ os.environ["JAX_COMPILATION_CACHE_DIR"] = _CACHE
 os.environ["QUICKNAV_JAX_CACHE"] = _CACHE
 jax.config.update("jax_compilation_cache_dir", _CACHE)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.3)
+# FastAPI's TestClient sends Host: testserver; the API answers only the names it trusts
+os.environ.setdefault("QUICKNAV_ALLOWED_HOSTS", "testserver,localhost,127.0.0.1,::1")
 
 
 @pytest.fixture(scope="session")

@@ -16,7 +16,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 LIBRARY = ROOT / "quicknav_core"
 SERVICE_ONLY = ("fastapi", "starlette", "uvicorn", "redis", "grpc", "httpx", "quicknav_client",
-                "service", "quicknav_cli", "pydantic_settings")  # fmt: skip
+                "quicknav_service", "quicknav_cli", "pydantic_settings")  # fmt: skip
 
 
 def _modules(package: Path, root: Path = ROOT) -> dict[str, Path]:
@@ -85,7 +85,7 @@ def test_env__private_names_stay_inside_env():
                 private.add(node.name)
     assert {"_episode_start", "_entered_bits"} <= private  # the scan sees them
     offenders = []
-    outside = {**_modules(LIBRARY), **_modules(ROOT / "quicknav_cli"), **_modules(ROOT / "service")}
+    outside = {**_modules(LIBRARY), **_modules(ROOT / "quicknav_cli"), **_modules(ROOT / "quicknav_service")}
     for name, path in outside.items():
         if name.startswith("quicknav_core.env"):
             continue

@@ -1,6 +1,12 @@
 """QuickNav Python SDK: talks to a QuickNav service without importing JAX."""
 
-__version__ = "0.1.0"
+from importlib.metadata import PackageNotFoundError as _NotInstalled
+from importlib.metadata import version as _version
+
+try:  # one source: clients/pyproject.toml's version, as installed
+    __version__ = _version("quicknav-client")
+except _NotInstalled:  # the source folder on sys.path without the package installed
+    __version__ = "0+unknown"
 
 # --- REST jobs client (rest.py, errors.py) ------------------------------------------------------
 from quicknav_client.errors import (

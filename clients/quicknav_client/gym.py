@@ -6,6 +6,17 @@ is in ``info["final_obs"][i]`` (mask ``info["_final_obs"]``), as gymnasium's
 ``AutoresetMode.SAME_STEP`` prescribes. ``RemoteEnv`` is a single ``gymnasium.Env`` (one env per
 stream) for tools that expect one, such as gymnasium's env checker.
 
+With ``groups`` > 1, ``RemoteVectorEnv`` also has EnvPool's asynchronous interface: the envs are
+split into groups stepped on their own, ``recv()`` returns the next group that is ready (its
+``info["env_id"]`` says which envs) and ``send(actions, env_id)`` sends that group's actions back,
+so the server steps one group while the agent works on another::
+
+    env = RemoteVectorEnv(target, num_envs=4096, groups=2)
+    env.async_reset()
+    while training:
+        obs, rew, term, trunc, info = env.recv()
+        env.send(policy(obs), info["env_id"])
+
 Needs the ``gym`` extra: ``pip install "quicknav-client[gym]"``.
 """
 
@@ -56,9 +67,14 @@ class RemoteVectorEnv(VectorEnv):
         split: str = "train",
         token: str | None = None,
         client: RolloutClient | None = None,
+        groups: int = 1,
     ):
         self.client = client or RolloutClient(target, token=token)
-        started = self.client.start(num_envs=num_envs, seed=seed, config=config, split=split)
+        started = self.client.start(num_envs=num_envs, seed=seed, config=config, split=split,
+                                    groups=groups)  # fmt: skip
+        self.groups = started.groups
+        self.group_size = started.num_envs // started.groups
+        self._ready: list[tuple[int, np.ndarray]] = []  # (group, first observations) to recv
         self.num_envs = started.num_envs
         self.env_config = started.env_config
         self.max_steps = started.max_steps
@@ -82,25 +98,62 @@ class RemoteVectorEnv(VectorEnv):
     def step(self, actions):
         t = self.client.step(np.asarray(actions, np.float32).reshape(self.num_envs, -1))
         self._first_obs = None
-        info: dict[str, Any] = {
-            "collision": t.collisions,
-            "_collision": np.ones(self.num_envs, bool),
-        }
-        if t.done_indices.size:
-            final = np.full(self.num_envs, None, dtype=object)
-            for j, i in enumerate(t.done_indices):
-                final[i] = np.array(t.final_observations[j])
-            mask = np.zeros(self.num_envs, bool)
-            mask[t.done_indices] = True
-            info["final_obs"] = final
-            info["_final_obs"] = mask
-        return np.array(t.observations), np.array(t.rewards), np.array(t.terminated), \
-            np.array(t.truncated), info  # fmt: skip
+        return _step_result(t, self.num_envs)
+
+    # ------------------------------------------------------------------ asynchronous mode
+    def async_reset(self) -> None:
+        """Start (or restart) asynchronous stepping: every group's first observations are the
+        next ``recv()`` results, group by group."""
+        obs = self._first_obs if self._first_obs is not None else self.client.reset()
+        self._first_obs = None
+        k = self.group_size
+        self._ready = [(g, np.array(obs[g * k:(g + 1) * k])) for g in range(self.groups)]
+
+    def recv(self):
+        """The next ready group: ``(obs, rewards, terminated, truncated, info)`` for its envs,
+        ``info["env_id"]`` their indices (all zeros and False for a group's first observations)."""
+        k = self.group_size
+        if self._ready:
+            g, obs = self._ready.pop(0)
+            zeros = np.zeros(k, bool)
+            return obs, np.zeros(k, np.float32), zeros, zeros.copy(), {"env_id": self._ids(g)}
+        t = self.client.recv()
+        obs, rew, term, trunc, info = _step_result(t, k)
+        info["env_id"] = self._ids(t.group)
+        return obs, rew, term, trunc, info
+
+    def send(self, actions, env_id=None) -> None:
+        """Send one group's actions; ``env_id`` is the ``info["env_id"]`` its ``recv()`` gave."""
+        k = self.group_size
+        ids = np.arange(k) if env_id is None else np.asarray(env_id)
+        group = int(ids[0]) // k if ids.size else -1
+        if ids.shape != (k,) or not np.array_equal(ids, self._ids(group)):
+            raise ValueError(f"env_id must be one group's ids as recv() gave them ({k} envs,"
+                             f" a multiple of {k} up); got {ids[:8].tolist()}")  # fmt: skip
+        self.client.send(np.asarray(actions, np.float32).reshape(k, -1), group=group)
+
+    def _ids(self, group: int) -> np.ndarray:
+        return np.arange(group * self.group_size, (group + 1) * self.group_size)
 
     def close_extras(self, **kwargs) -> None:
         if not self._closed:
             self._closed = True
             self.client.close()
+
+
+def _step_result(t, n: int):
+    """A Transition as gymnasium's step tuple, with same-step auto-reset's final observations."""
+    info: dict[str, Any] = {"collision": t.collisions, "_collision": np.ones(n, bool)}
+    if t.done_indices.size:
+        final = np.full(n, None, dtype=object)
+        for j, i in enumerate(t.done_indices):
+            final[i] = np.array(t.final_observations[j])
+        mask = np.zeros(n, bool)
+        mask[t.done_indices] = True
+        info["final_obs"] = final
+        info["_final_obs"] = mask
+    return np.array(t.observations), np.array(t.rewards), np.array(t.terminated), \
+        np.array(t.truncated), info  # fmt: skip
 
 
 class RemoteEnv(gym.Env):

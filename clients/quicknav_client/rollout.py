@@ -4,6 +4,17 @@ with RolloutClient("localhost:50051") as rc:
     started = rc.start(num_envs=64, seed=0, config={"grid_size": 8})
     t = rc.step(np.zeros((64, 2), np.float32))
     t.observations, t.rewards, t.terminated, t.truncated, t.final_observations
+
+Asynchronous mode (``groups`` > 1): the server steps one group of envs while the others' messages
+travel and the agent computes; ``send`` a group's actions, ``recv`` whichever group is done:
+
+with RolloutClient("localhost:50051") as rc:
+    started = rc.start(num_envs=4096, groups=2)        # groups of 2048
+    for g in range(2):
+        rc.send(policy(rc.group_observations(started.observations, g)), group=g)
+    while training:
+        t = rc.recv()                                   # t.group: which group stepped
+        rc.send(policy(t.observations), group=t.group)
 """
 
 from __future__ import annotations
@@ -54,6 +65,7 @@ class Started:
     observations: np.ndarray  # (num_envs, obs_dim)
     env_config: dict[str, Any]
     max_steps: int
+    groups: int = 1  # asynchronous mode: groups of num_envs / groups envs
 
 
 @dataclass
@@ -69,6 +81,7 @@ class Transition:
     final_observations: np.ndarray  # (k, obs_dim) float32
     collisions: np.ndarray  # (n,) bool
     step_count: int
+    group: int = 0  # asynchronous mode: the group that stepped (its n = num_envs / groups envs)
 
 
 @dataclass
@@ -90,6 +103,20 @@ class PolicyFrame:
     goals: np.ndarray | None  # (n, 2) on the first frame
     walls: np.ndarray | None  # (n, g, g) on the first frame
     success: np.ndarray | None  # (n,) on the last frame
+
+
+def _transition(t: pb.Transition) -> Transition:
+    return Transition(
+        observations=decode(t.observations),
+        rewards=decode(t.rewards),
+        terminated=decode(t.terminated),
+        truncated=decode(t.truncated),
+        done_indices=decode(t.done_indices),
+        final_observations=decode(t.final_observations),
+        collisions=decode(t.collisions),
+        step_count=t.step_count,
+        group=t.group,
+    )
 
 
 def _space(spec: pb.BoxSpec) -> Space:
@@ -133,6 +160,7 @@ class RolloutClient:
         self._lock = threading.Lock()
         self.started: Started | None = None
         self.closed: Closed | None = None
+        self._in_flight: set[int] = set()  # asynchronous mode: groups sent and not received
 
     def _requests(self):
         while True:
@@ -163,15 +191,17 @@ class RolloutClient:
         split: str = "train",
         policy_job: str | None = None,
         stochastic: bool = False,
+        groups: int = 1,
     ) -> Started | None:
         """Start ``num_envs`` envs with an EnvConfig (a dict of fields or its JSON).
 
+        ``groups`` > 1: asynchronous mode (``send``/``recv``), the envs in that many groups.
         With ``policy_job`` the server streams that job's episodes instead: returns None, read
         them with ``policy_frames()``.
         """
         if split not in SPLITS:
             raise ValueError(f"split={split!r}: allowed values are 'train' and 'test'")
-        start = pb.Start(num_envs=num_envs, seed=seed, split=SPLITS[split])
+        start = pb.Start(num_envs=num_envs, seed=seed, split=SPLITS[split], groups=groups)
         if isinstance(config, str):
             start.config_json = config
         elif config:
@@ -192,26 +222,48 @@ class RolloutClient:
             observations=decode(s.observations),
             env_config=json.loads(s.env_config_json),
             max_steps=s.max_steps,
+            groups=max(s.groups, 1),
         )
         return self.started
 
     def step(self, actions) -> Transition:
-        """Step every env; ``actions`` is (num_envs, 2) in [-1, 1]."""
+        """Step every env; ``actions`` is (num_envs, 2) in [-1, 1] (lock-step sessions)."""
+        if self.started is not None and self.started.groups > 1:
+            raise RuntimeError("this session is asynchronous (groups > 1): use send() and recv()")
         reply = self._call(pb.AgentMessage(step=pb.Step(actions=encode(actions, "float32"))))
-        t = reply.transition
-        return Transition(
-            observations=decode(t.observations),
-            rewards=decode(t.rewards),
-            terminated=decode(t.terminated),
-            truncated=decode(t.truncated),
-            done_indices=decode(t.done_indices),
-            final_observations=decode(t.final_observations),
-            collisions=decode(t.collisions),
-            step_count=t.step_count,
-        )
+        return _transition(reply.transition)
+
+    # ------------------------------------------------------------------ asynchronous mode
+    def group_observations(self, observations: np.ndarray, group: int) -> np.ndarray:
+        """Group ``group``'s rows of a whole-batch array (``Started.observations``, a reset's)."""
+        k = self.started.num_envs // self.started.groups
+        return observations[group * k:(group + 1) * k]
+
+    def send(self, actions, group: int = 0) -> None:
+        """Send group ``group``'s actions, (num_envs / groups, 2), without waiting."""
+        if group in self._in_flight:
+            raise RuntimeError(f"group {group} has a Step in flight: recv() its Transition first")
+        self._in_flight.add(group)
+        self._outbox.put(pb.AgentMessage(step=pb.Step(actions=encode(actions, "float32"),
+                                                      group=group)))  # fmt: skip
+
+    def recv(self) -> Transition:
+        """The next group's Transition (whichever group stepped first); ``.group`` says which."""
+        if not self._in_flight:
+            raise RuntimeError("no Step in flight: send() a group's actions first")
+        msg = self._next()
+        if msg.WhichOneof("payload") != "transition":
+            raise RolloutError(grpc.StatusCode.INTERNAL,
+                               f"expected a Transition, got {msg.WhichOneof('payload')}")  # fmt: skip
+        t = _transition(msg.transition)
+        self._in_flight.discard(t.group)
+        return t
 
     def reset(self, seed: int | None = None) -> np.ndarray:
         """New episodes in every env (same seed, same episodes); returns the first observations."""
+        if self._in_flight:
+            raise RuntimeError(f"groups {sorted(self._in_flight)} have Steps in flight: recv()"
+                               " their Transitions before reset()")  # fmt: skip
         reset = pb.Reset() if seed is None else pb.Reset(seed=seed)
         return decode(self._call(pb.AgentMessage(reset=reset)).reset.observations)
 
@@ -240,6 +292,8 @@ class RolloutClient:
         """Close the session (the server replies with totals) and the channel."""
         if self.closed is None and self._responses is not None:
             try:
+                while self._in_flight:  # the Transitions of groups in flight come first
+                    self.recv()
                 reply = self._call(pb.AgentMessage(close=pb.Close()))
                 c = reply.closed
                 self.closed = Closed(c.steps, c.env_steps, c.episodes)

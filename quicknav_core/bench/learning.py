@@ -15,6 +15,7 @@ import json
 import math
 import os
 import re
+import shutil
 import statistics
 import time
 from contextlib import contextmanager
@@ -188,9 +189,37 @@ def run_one(row: Row, seed: int, runs_dir: Path, scale: float = 1.0, say=print) 
         "total_steps": steps,
         "time_cap_minutes": cap_s / 60,
         "reward": row.reward,
+        # what trained it: a later version can tell a seed that needs training again
+        "quicknav": _version(),
+        "network": cfg.network.model_dump(mode="json"),
     }
     eval_path.write_text(json.dumps(result, indent=2))
     return result
+
+
+def _version() -> str:
+    import quicknav_core
+
+    return quicknav_core.__version__
+
+
+def _why_rerun(recorded: dict[str, Any], scoreless: bool, before: str | None) -> str | None:
+    """Why a recorded seed of a chosen row trains again, or None."""
+    if scoreless and not recorded.get("per_episode"):
+        return "no per-episode scores"
+    if before and _older_than(recorded, before):
+        return f"trained before QuickNav {before}"
+    return None
+
+
+def _older_than(recorded: dict[str, Any], version: str) -> bool:
+    """Whether a recorded seed was trained by a QuickNav older than ``version`` (or unstamped)."""
+
+    def parts(v: str) -> tuple[int, ...]:
+        return tuple(int(p) for p in v.split("+")[0].split(".") if p.isdigit())
+
+    stamp = recorded.get("training", {}).get("quicknav")
+    return stamp is None or parts(stamp) < parts(version)
 
 
 def _machine() -> str:
@@ -480,11 +509,13 @@ def _locked(folder: Path):
 
 
 def run_learning_bench(out_dir: Path, runs_dir: Path, rows: list[str] | None, seeds: int = 3,
-                       scale: float = 1.0, say=print, rerun_scoreless: bool = False) -> tuple[str, dict]:  # fmt: skip
+                       scale: float = 1.0, say=print, rerun_scoreless: bool = False,
+                       rerun_before: str | None = None) -> tuple[str, dict]:  # fmt: skip
     """Train/evaluate what is missing, then write report.md, report.json and profiles.png into
     ``out_dir``. ``rows``: row keys (``ROW_KEYS``) to train now; None = all. ``rerun_scoreless``:
-    also retrain the selected rows' seeds recorded before the report kept per-episode scores (each
-    recorded seed stays in the report until its new run is evaluated)."""
+    also retrain the selected rows' seeds recorded before the report kept per-episode scores;
+    ``rerun_before``: also those trained by a QuickNav older than that version (a fix changed what
+    trains). Each recorded seed stays in the report until its new run is evaluated."""
     out_dir.mkdir(parents=True, exist_ok=True)
     runs_dir.mkdir(parents=True, exist_ok=True)
     say("baselines (oracle, random)")
@@ -512,14 +543,22 @@ def run_learning_bench(out_dir: Path, runs_dir: Path, rows: list[str] | None, se
     for row in ROWS:
         selected = not rows or row.key in rows
         for seed in range(seeds):
-            path = runs_dir / f"{row.key}-s{seed}" / "eval" / "eval.json"
+            run_dir = runs_dir / f"{row.key}-s{seed}"
+            path = run_dir / "eval" / "eval.json"
             recorded = kept.get((row.key, seed))
+
             if path.exists():
-                own[(row.key, seed)] = json.loads(path.read_text())
-            elif recorded is not None and not (rerun_scoreless and selected and not recorded.get("per_episode")):
+                found = json.loads(path.read_text())
+                if rerun_before and selected and _older_than(found, rerun_before):
+                    shutil.rmtree(run_dir)  # its checkpoint may not even load any more
+                else:
+                    own[(row.key, seed)] = found
+                    continue
+            why = _why_rerun(recorded, rerun_scoreless, rerun_before) if recorded and selected else None
+            if recorded is not None and why is None:
                 continue
-            elif selected:
-                say(f"{row.label}, seed {seed}" + (" (rerun: no per-episode scores)" if recorded else ""))
+            if selected:
+                say(f"{row.label}, seed {seed}" + (f" (rerun: {why})" if why else ""))
                 own[(row.key, seed)] = run_one(row, seed, runs_dir, scale, say)
                 write()
     return write()

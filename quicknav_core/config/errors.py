@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import difflib
+from collections.abc import Iterable
 from typing import Any
 
 from pydantic import ValidationError
@@ -20,6 +22,20 @@ def error_items(error: ValidationError) -> list[dict[str, Any]]:
             item["input"] = e["input"]
         items.append(item)
     return items
+
+
+def did_you_mean(name: str, known: Iterable[str]) -> str | None:
+    """The known name closest to ``name`` (a likely typo), or None."""
+    close = difflib.get_close_matches(name, list(known), n=1, cutoff=0.6)
+    return close[0] if close else None
+
+
+def unknown_field_msg(name: str, where: str, known: Iterable[str]) -> str:
+    """``unknown field 'gird_size' in env; did you mean 'grid_size'? known: ...``."""
+    known = list(known)
+    close = did_you_mean(name, known)
+    guess = f"; did you mean {close!r}?" if close else ""
+    return f"unknown field {name!r} in {where}{guess}{' known' if close else '; known'}: {', '.join(known)}"
 
 
 def format_items(items: list[dict[str, Any]], title: str = "", prefix: str = "") -> str:

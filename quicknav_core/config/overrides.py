@@ -20,6 +20,8 @@ from typing import Annotated, Any, TypeVar
 
 from pydantic import BaseModel
 
+from quicknav_core.config.errors import unknown_field_msg
+
 M = TypeVar("M", bound=BaseModel)
 
 # Tag fields of the discriminated unions (algorithm.name, network.kind).
@@ -127,7 +129,7 @@ def _set(data: dict, schema: type[BaseModel], key: str, parts: list[str], value:
             return
         if part not in fields:
             where = ".".join(parts[:i]) or schema.__name__
-            raise OverrideError(key, f"unknown field {part!r} in {where}; known: {', '.join(fields)}")
+            raise OverrideError(key, unknown_field_msg(part, where, fields))
         annotation = fields[part].annotation
         if last and isinstance(value, dict) and _models(annotation):
             # a section given as an object: its keys one by one, the variant's tag first

@@ -12,15 +12,15 @@ A request that cannot become a config raises ``ConfigError`` whose items name th
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 from pydantic import AliasChoices, BaseModel, Field, ValidationError, model_validator
 
 from quicknav_core.config.base import Split, StrictModel
 from quicknav_core.config.env import EnvConfig
-from quicknav_core.config.errors import ConfigError, error_items
+from quicknav_core.config.errors import ConfigError, error_items, unknown_field_msg
 from quicknav_core.config.eval import EvalConfig
-from quicknav_core.config.overrides import OverrideError, override_data
+from quicknav_core.config.overrides import OverrideError, _models, override_data
 from quicknav_core.config.presets import PRESETS, get_preset
 from quicknav_core.config.sweep import (
     BUILTIN_SPACES,
@@ -28,14 +28,22 @@ from quicknav_core.config.sweep import (
     SPACE_BASE_PRESET,
     SweepConfig,
 )
-from quicknav_core.config.train import TrainConfig
+from quicknav_core.config.train import TrainConfig, unhonoured_fields, with_trainer_defaults
 
+M = TypeVar("M", bound=BaseModel)
 SpaceName = Literal["ppo", "sac", "td3", "mlp", "lstm", "gtrxl"]
 # the tag values that pydantic puts into error locations of tagged unions
 _TAG_VALUES = {"ppo", "sac", "td3", "mlp", "lstm", "gtrxl"}
 
 
 # --------------------------------------------------------------------------- requests
+def _settings_hint(key: str, config: type[BaseModel], what: str) -> str | None:
+    head = key.split(".", 1)[0]
+    if head not in config.model_fields:
+        return None
+    return f'{what} go in overrides: {{"overrides": {{"{key}": ...}}}}'
+
+
 class TrainRequest(StrictModel):
     """A training request: a preset or a full config, plus dotted-key overrides applied on top."""
 
@@ -46,6 +54,11 @@ class TrainRequest(StrictModel):
         description="dotted keys of TrainConfig with JSON values",
         examples=[{"total_steps": 200000, "env.grid_size": 8}],
     )
+
+    @classmethod
+    def unknown_field_hint(cls, key: str) -> str | None:
+        """Where a top-level key that is not a request field belongs, if it is a config field."""
+        return _settings_hint(key, TrainConfig, "training settings")
 
     @model_validator(mode="after")
     def _one(self) -> TrainRequest:
@@ -68,6 +81,13 @@ class SweepRequest(StrictModel):
     parallel: int | None = Field(None, ge=1, le=1024, description="trials asked at once")
     total_steps: int | None = Field(None, ge=1, description="env steps per trial")
     overrides: dict[str, Any] = Field(default_factory=dict, examples=[{"env.grid_size": 8}])
+
+    @classmethod
+    def unknown_field_hint(cls, key: str) -> str | None:
+        """Where a top-level key that is not a request field belongs, if it is a config field."""
+        return _settings_hint(key, SweepConfig, "sweep settings") or _settings_hint(
+            key, TrainConfig, "settings of the trials' base config"
+        )
 
     @model_validator(mode="after")
     def _one(self) -> SweepRequest:
@@ -138,6 +158,48 @@ class EvalRequest(StrictModel):
 
 
 # --------------------------------------------------------------------------- resolving
+def _model_at(model: type[BaseModel], loc: list[str]) -> type[BaseModel] | None:
+    """The model that holds the field at ``loc`` (pydantic's error location inside ``model``)."""
+    parts = list(loc)
+    while parts:
+        part = parts.pop(0)
+        field = model.model_fields.get(part)
+        members = _models(field.annotation) if field is not None else []
+        if not members:
+            return None
+        if len(members) > 1:  # a tagged union: pydantic names the variant next in the location
+            tag = parts.pop(0) if parts else None
+            members = [m for m in members if tag in
+                       (m.model_fields[t].default for t in ("kind", "name") if t in m.model_fields)]  # fmt: skip
+            if len(members) != 1:
+                return None
+        model = members[0]
+    return model
+
+
+def explain_unknown_fields(model: type[BaseModel], items: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """``items`` with pydantic's "Extra inputs are not permitted" turned into a message that says
+    what was meant: the closest known name, or (a config field sent beside the request's own) that
+    it belongs in ``overrides``."""
+    out = []
+    for item in items:
+        if item.get("type") != "extra_forbidden" or not item["loc"]:
+            out.append(item)
+            continue
+        *parent_loc, key = item["loc"]
+        parent = _model_at(model, parent_loc)
+        if parent is None:
+            out.append(item)
+            continue
+        hint_of = getattr(parent, "unknown_field_hint", None)
+        hint = hint_of(key) if hint_of is not None and not parent_loc else None
+        where = ".".join(p for p in parent_loc if p not in _TAG_VALUES) or parent.__name__
+        msg = (f"unknown field {key!r}: {hint}" if hint
+               else unknown_field_msg(key, where, parent.model_fields))  # fmt: skip
+        out.append({**item, "msg": msg, "type": "unknown_field"})
+    return out
+
+
 def _request(cls: type[BaseModel], request: BaseModel | Mapping[str, Any]) -> Any:
     if isinstance(request, cls):
         return request
@@ -146,7 +208,7 @@ def _request(cls: type[BaseModel], request: BaseModel | Mapping[str, Any]) -> An
     try:
         return cls.model_validate(request)
     except ValidationError as e:
-        raise ConfigError(error_items(e), title=cls.__name__) from None
+        raise ConfigError(explain_unknown_fields(cls, error_items(e)), title=cls.__name__) from None
 
 
 class _Where:
@@ -168,7 +230,8 @@ class _Where:
             if path[:n] == cfg_path and (best is None or n > best[0]):
                 best = (n, req_loc)
         if best is not None:
-            return best[1]
+            # a section sent as an object ({"env": {"grid_size": 1000}}): down to the field
+            return [*best[1], *path[best[0]:]]
         # an error of a whole section (a check across fields): the request field inside it that
         # the message names, e.g. "total_steps=1 is less than one update" -> the total_steps sent
         inside = [(p, r) for p, r in self.sources if p[: len(path)] == path]
@@ -179,15 +242,34 @@ class _Where:
             return [*self.config_root, *loc]
         return self.fallback
 
-    def errors(self, e: ValidationError, strip: int = 0) -> ConfigError:
-        items = []
-        for item in error_items(e):
-            loc = item["loc"][strip:]
-            items.append({**item, "loc": self.locate(loc, item["msg"]), "field": ".".join(loc)})
-        return ConfigError(items, title=e.title)
+    def items(self, e: ValidationError) -> list[dict[str, Any]]:
+        return [{**item, "loc": self.locate(item["loc"], item["msg"]), "field": ".".join(item["loc"])}
+                for item in error_items(e)]  # fmt: skip
 
-    def override_error(self, e: OverrideError, request_loc: list[str]) -> ConfigError:
-        return ConfigError.single(request_loc, e.message, "unknown_field")
+
+def _apply(schema: type[BaseModel], data: dict, changes, where: _Where) -> list[dict[str, Any]]:
+    """Set each ``(config path, value, request loc)`` in ``data``; the unknown keys' errors (all of
+    them: the rest are still applied, so their bad values are reported in the same answer)."""
+    problems = []
+    for path, value, loc in changes:
+        try:
+            override_data(schema, {path: value}, data=data)
+        except OverrideError as e:
+            problems.append({"loc": list(loc), "msg": e.message, "type": "unknown_field"})
+            continue
+        where.add(path, loc)
+    return problems
+
+
+def _validate(schema: type[M], data: dict, where: _Where, problems: list[dict[str, Any]]) -> M:
+    """``data`` as a ``schema``; every problem of the request in one ConfigError."""
+    try:
+        config = schema.model_validate(data)
+    except ValidationError as e:
+        raise ConfigError([*problems, *where.items(e)], title=e.title) from None
+    if problems:
+        raise ConfigError(problems, title=schema.__name__)
+    return config
 
 
 def resolve_train(request: TrainRequest | Mapping[str, Any]) -> TrainConfig:
@@ -205,16 +287,20 @@ def resolve_train(request: TrainRequest | Mapping[str, Any]) -> TrainConfig:
         base = req.config
         where = _Where(fallback=["config"], config_root=["config"])
     data = base.model_dump(mode="json")
-    for key, value in req.overrides.items():
-        try:
-            override_data(TrainConfig, {key: value}, data=data)
-        except OverrideError as e:
-            raise where.override_error(e, ["overrides", key]) from None
-        where.add(key, ["overrides", key])
-    try:
-        return TrainConfig.model_validate(data)
-    except ValidationError as e:
-        raise where.errors(e) from None
+    changes = [(key, value, ["overrides", key]) for key, value in req.overrides.items()]
+    problems = _apply(TrainConfig, data, changes, where)
+    return _honoured(_validate(TrainConfig, data, where, problems), where)
+
+
+def _honoured(config: TrainConfig, where: _Where, inside: tuple[str, ...] = ()) -> TrainConfig:
+    """``config`` with what it leaves to its trainer written in; refused, every field named, if
+    its trainer cannot do what a field says (what a config names is what runs)."""
+    problems = [{"loc": where.locate([*inside, *path.split(".")], msg), "msg": msg,
+                 "type": "not_honoured", "field": ".".join([*inside, path])}
+                for path, msg in unhonoured_fields(config)]  # fmt: skip
+    if problems:
+        raise ConfigError(problems, title="TrainConfig")
+    return with_trainer_defaults(config)
 
 
 def _sweep_key(key: str) -> str:
@@ -241,16 +327,9 @@ def resolve_sweep(request: SweepRequest | Mapping[str, Any]) -> SweepConfig:
     )
     changes = [(path, value, [name]) for name, path, value in shorthands if value is not None]
     changes += [(_sweep_key(k), v, ["overrides", k]) for k, v in req.overrides.items()]
-    for path, value, loc in changes:
-        try:
-            override_data(SweepConfig, {path: value}, data=data)
-        except OverrideError as e:
-            raise where.override_error(e, loc) from None
-        where.add(path, loc)
-    try:
-        return SweepConfig.model_validate(data)
-    except ValidationError as e:
-        raise where.errors(e) from None
+    problems = _apply(SweepConfig, data, changes, where)
+    config = _validate(SweepConfig, data, where, problems)
+    return config.model_copy(update={"base": _honoured(config.base, where, ("base",))})
 
 
 TrainedEnv = Callable[[str], EnvConfig]
@@ -265,16 +344,8 @@ def resolve_env(fields: Mapping[str, Any], base: EnvConfig | None = None) -> Env
     base = base or EnvConfig()
     where = _Where(fallback=[])
     data = base.model_dump(mode="json")
-    for key, value in fields.items():
-        try:
-            override_data(EnvConfig, {key: value}, data=data)
-        except OverrideError as e:
-            raise ConfigError.single([key], e.message, "unknown_field") from None
-        where.add(key, [key])
-    try:
-        return EnvConfig.model_validate(data)
-    except ValidationError as e:
-        raise where.errors(e) from None
+    problems = _apply(EnvConfig, data, [(key, value, [key]) for key, value in fields.items()], where)
+    return _validate(EnvConfig, data, where, problems)
 
 
 def resolve_eval(

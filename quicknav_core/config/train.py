@@ -16,6 +16,16 @@ from quicknav_core.config.env import EnvConfig
 
 MAX_DEVICES = 1024  # local accelerators one process can address
 
+_LEARNED_LOG_STD = (
+    "the policy's log std comes from a layer (per state) instead of one parameter per action;"
+    " null: what the trainer does (resolve writes it in: false for PPO, true for SAC, null for"
+    " TD3, whose policy is deterministic)"
+)
+_INIT_LOG_STD = (
+    "initial log std of the policy; null: the trainer's own (resolve writes it in: -0.5 for"
+    " QuickNav's PPO, 0.0 for rejax's PPO; SAC learns it per state and TD3 has none: null)"
+)
+
 
 class MLPNetwork(StrictModel):
     """ReLU MLP; ``memory_size > 0`` adds the paper's memory head (a recurrent carry)."""
@@ -23,9 +33,13 @@ class MLPNetwork(StrictModel):
     kind: Literal["mlp"] = "mlp"
     hidden_sizes: tuple[int, ...] = Field((128, 128), min_length=1, max_length=8)
     memory_size: int = Field(0, ge=0, le=1024, description="memory head size; 0 = memoryless")
-    dropout: float = Field(0.0, ge=0.0, lt=1.0, description="dropout after each hidden layer")
-    learned_log_std: bool = Field(False, description="state-dependent log std (else a parameter)")
-    init_log_std: float = Field(-0.5, ge=-5.0, le=2.0)
+    dropout: float = Field(
+        0.0, ge=0.0, lt=1.0,
+        description="dropout after each hidden layer; no trainer applies it (PPO's probability ratio"
+        " needs the same network when it collects and when it updates), so resolve refuses > 0",
+    )  # fmt: skip
+    learned_log_std: bool | None = Field(None, description=_LEARNED_LOG_STD)
+    init_log_std: float | None = Field(None, ge=-5.0, le=2.0, description=_INIT_LOG_STD)
 
     @model_validator(mode="after")
     def _sizes(self) -> MLPNetwork:
@@ -41,8 +55,8 @@ class LSTMNetwork(StrictModel):
     kind: Literal["lstm"] = "lstm"
     num_layers: int = Field(2, ge=1, le=16)
     hidden_size: int = Field(15, ge=1, le=1024)
-    learned_log_std: bool = False
-    init_log_std: float = Field(-0.5, ge=-5.0, le=2.0)
+    learned_log_std: bool | None = Field(None, description=_LEARNED_LOG_STD)
+    init_log_std: float | None = Field(None, ge=-5.0, le=2.0, description=_INIT_LOG_STD)
 
 
 class GTrXLNetwork(StrictModel):
@@ -55,8 +69,8 @@ class GTrXLNetwork(StrictModel):
     num_layers: int = Field(2, ge=1, le=16)
     memory_length: int = Field(32, ge=1, le=1024)
     gate_bias: float = Field(2.0, ge=-10.0, le=10.0)
-    learned_log_std: bool = False
-    init_log_std: float = Field(-0.5, ge=-5.0, le=2.0)
+    learned_log_std: bool | None = Field(None, description=_LEARNED_LOG_STD)
+    init_log_std: float | None = Field(None, ge=-5.0, le=2.0, description=_INIT_LOG_STD)
 
 
 NetworkConfig = Annotated[MLPNetwork | LSTMNetwork | GTrXLNetwork, Field(discriminator="kind")]
@@ -253,3 +267,70 @@ class TrainConfig(StrictModel):
                 f" ({self.steps_per_update} env steps); allowed: total_steps >= {self.steps_per_update}"
             )
         return self
+
+
+# --------------------------------------------------------------------------- what trainers honour
+# rejax keeps its env-step count (global_step) in an int32
+REJAX_MAX_STEPS = 2**31 - 1
+# The policy's standard deviation as each trainer builds it when the config leaves it to the
+# trainer (None): (learned_log_std, init_log_std)
+TRAINER_LOG_STD: dict[str, tuple[bool | None, float | None]] = {
+    "recurrent-ppo": (False, -0.5),
+    "rejax-ppo": (False, 0.0),
+    "rejax-sac": (True, None),
+    "rejax-td3": (None, None),
+}
+
+
+def unhonoured_fields(config: TrainConfig) -> list[tuple[str, str]]:
+    """``(config path, message)`` for every field this config's trainer cannot do what it says;
+    resolve refuses the config with these (a field that runs differently is never kept)."""
+    net, kind = config.network, config.trainer_kind
+    out = []
+    if isinstance(net, MLPNetwork) and net.dropout > 0:
+        out.append(("network.dropout", (
+            f"network.dropout={net.dropout}: no trainer applies dropout (PPO's probability ratio"
+            " needs the same network when it collects and when it updates; rejax's networks have"
+            " none); allowed: 0")))  # fmt: skip
+    if kind.startswith("rejax-") and config.total_steps > REJAX_MAX_STEPS:
+        out.append(("total_steps", (
+            f"total_steps={config.total_steps}: rejax's {kind[6:].upper()} counts env steps in a"
+            f" 32-bit integer; allowed: up to {REJAX_MAX_STEPS}"
+            + (", or algorithm.implementation='quicknav' (QuickNav's PPO counts updates)"
+               if kind == "rejax-ppo" else ""))))  # fmt: skip
+    learned, init = net.learned_log_std, net.init_log_std
+    if kind == "rejax-ppo" and learned:
+        out.append(("network.learned_log_std", (
+            "network.learned_log_std=true: rejax's PPO keeps one log std per action (a"
+            " parameter); allowed: false or null, or algorithm.implementation='quicknav' for a"
+            " per-state log std")))  # fmt: skip
+    if kind == "rejax-sac":
+        if learned is False:
+            out.append(("network.learned_log_std", (
+                "network.learned_log_std=false: SAC's policy outputs its log std per state (a"
+                " layer); allowed: true or null")))  # fmt: skip
+        if init is not None:
+            out.append(("network.init_log_std", (
+                f"network.init_log_std={init}: SAC's log std is a layer's output (clipped to"
+                " [-10, 2]) with no initial value to set; allowed: null")))  # fmt: skip
+    if kind == "rejax-td3":
+        for name, value in (("learned_log_std", learned), ("init_log_std", init)):
+            if value is not None:
+                out.append((f"network.{name}", (
+                    f"network.{name}={str(value).lower()}: TD3's policy is deterministic (its"
+                    " exploration is algorithm.exploration_noise); allowed: null")))  # fmt: skip
+    return out
+
+
+def with_trainer_defaults(config: TrainConfig) -> TrainConfig:
+    """``config`` with the fields it leaves to the trainer (None) set to what the trainer does."""
+    learned, init = TRAINER_LOG_STD[config.trainer_kind]
+    net = config.network
+    update = {}
+    if net.learned_log_std is None and learned is not None:
+        update["learned_log_std"] = learned
+    if net.init_log_std is None and init is not None:
+        update["init_log_std"] = init
+    if not update:
+        return config
+    return config.model_copy(update={"network": net.model_copy(update=update)})

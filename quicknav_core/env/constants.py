@@ -53,6 +53,16 @@ def beam_angles(num_beams: int, fov_deg: float) -> np.ndarray:
     return angles.astype(np.float32)
 
 
+def beam_offsets(num_beams: int, fov_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """cos and sin of ``beam_angles``, float32 (computed in float64).
+
+    A beam's direction is the heading's rotated by its offset: (cos θ·cos a − sin θ·sin a,
+    sin θ·cos a + cos θ·sin a). The JAX env and the twin both compute it so: two sines and cosines
+    per pose instead of two per beam."""
+    a = beam_angles(num_beams, fov_deg).astype(np.float64)
+    return np.cos(a).astype(np.float32), np.sin(a).astype(np.float32)
+
+
 def observation_bounds(config: Any) -> tuple[np.ndarray, np.ndarray]:
     """Elementwise (low, high) of the observation vector of an ``EnvConfig``, float32."""
     b = config.lidar_beams

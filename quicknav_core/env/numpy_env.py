@@ -75,8 +75,10 @@ def cast_lidar_np(
     """All beams at once over every grid-line crossing, vectorised. (ranges f32 (B,), hits int32)."""
     g = walls.shape[0]
     cell = f32(cell)
-    ang = (f32(theta) + angles).astype(f32)
-    dx, dy = np.cos(ang).astype(f32), np.sin(ang).astype(f32)
+    # the heading rotated by each beam's offset, as the JAX env computes it
+    ca, sa = np.cos(angles.astype(np.float64)).astype(f32), np.sin(angles.astype(np.float64)).astype(f32)
+    ct, st = f32(np.cos(f32(theta))), f32(np.sin(f32(theta)))
+    dx, dy = (ct * ca - st * sa).astype(f32), (st * ca + ct * sa).astype(f32)
     k = np.arange(1, g, dtype=f32)
 
     def nearest(o_a, o_b, d_a, d_b, vertical):

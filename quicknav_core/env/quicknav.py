@@ -57,12 +57,21 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         self.observe_goal = config.observe_goal
         self.final_obs = config.final_obs
 
-    # Identity: jit treats the env as a static argument, so equal configs share compiled code.
+    # Identity: jit treats the env as a static argument. Two envs are the same static argument
+    # when their compiled code is the same: the fields that fix shapes and code paths. Numbers
+    # (rewards, speeds, radii, the room bank) live in EnvParams, so configs that differ only in
+    # them share compiled code.
+    @property
+    def static_key(self) -> tuple:
+        c = self.config
+        return (c.grid_size, c.lidar_beams, c.lidar_fov_deg, c.lidar_method, c.goal_candidates,
+                c.observe_goal, c.final_obs)  # fmt: skip
+
     def __hash__(self) -> int:
-        return hash(("QuickNavEnv", self.config))
+        return hash(("QuickNavEnv", self.static_key))
 
     def __eq__(self, other: object) -> bool:
-        return isinstance(other, QuickNavEnv) and other.config == self.config
+        return isinstance(other, QuickNavEnv) and other.static_key == self.static_key
 
     @property
     def name(self) -> str:
@@ -82,7 +91,8 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         return self._default_params
 
     # ------------------------------------------------------------------ gymnax API
-    @partial(jax.jit, static_argnames=("self",))
+    # ``params=None`` (this config's train params) is filled in before the compiled call: equal
+    # envs share compiled code, so nothing of one config's numbers may be baked into it.
     def step(
         self,
         key: jax.Array,
@@ -92,8 +102,20 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
     ) -> tuple[jax.Array, EnvState, jax.Array, jax.Array, dict[str, Any]]:
         """Step with auto-reset: the lidar is cast for the kept pose (fresh or moved), and once more
         for the pre-reset pose when ``final_obs`` is on (under vmap both casts run for every env)."""
-        if params is None:
-            params = self.default_params
+        return self._jit_step(key, state, action, self.default_params if params is None else params)
+
+    def reset(self, key: jax.Array, params: EnvParams | None = None) -> tuple[jax.Array, EnvState]:
+        """A fresh episode (see ``reset_env``)."""
+        return self._jit_reset(key, self.default_params if params is None else params)
+
+    @partial(jax.jit, static_argnames=("self",))
+    def _jit_reset(self, key: jax.Array, params: EnvParams) -> tuple[jax.Array, EnvState]:
+        return self.reset_env(key, params)
+
+    @partial(jax.jit, static_argnames=("self",))
+    def _jit_step(
+        self, key: jax.Array, state: EnvState, action: jax.Array, params: EnvParams
+    ) -> tuple[jax.Array, EnvState, jax.Array, jax.Array, dict[str, Any]]:
         # The dynamics are deterministic: the key only feeds the reset.
         moved, reward, info = self.transition(key, state, action, params)
         done = info["terminated"] | info["truncated"]

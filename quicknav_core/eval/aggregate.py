@@ -65,7 +65,12 @@ def interval(
         vectorized=True, confidence_level=CONFIDENCE, method="percentile",
         rng=np.random.default_rng(seed),
     )  # fmt: skip
-    return point, float(res.confidence_interval.low), float(res.confidence_interval.high)
+    # a percentile interval of a mean or IQM lies inside the data's range and holds the point up
+    # to rounding (a pooled mean of 0.92s can come back as 0.9200000000000002): pin both
+    lo_data, hi_data = float(scores.min()), float(scores.max())
+    low = min(point, max(lo_data, float(res.confidence_interval.low)))
+    high = max(point, min(hi_data, float(res.confidence_interval.high)))
+    return point, low, high
 
 
 def performance_profile(
@@ -87,7 +92,10 @@ def performance_profile(
         tuple(scores.T), _pooled(above), n_resamples=resamples, paired=False, vectorized=True,
         confidence_level=CONFIDENCE, method="percentile", rng=np.random.default_rng(seed),
     )  # fmt: skip
-    return point, np.asarray(res.confidence_interval.low), np.asarray(res.confidence_interval.high)
+    # fractions: inside [0, 1] and around the point, whatever the rounding
+    low = np.minimum(point, np.clip(res.confidence_interval.low, 0.0, 1.0))
+    high = np.maximum(point, np.clip(res.confidence_interval.high, 0.0, 1.0))
+    return point, low, high
 
 
 def draw_profiles(

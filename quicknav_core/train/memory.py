@@ -4,8 +4,9 @@ submission against its budget).
 The parts that grow with the config: the replay buffer of SAC/TD3 (``buffer_size`` transitions of
 two observations, an action, a reward and a done flag), the room banks, the env batch, PPO's
 rollout, the networks, and, for an evaluation, every episode's trajectory and its planner's fields.
-Factors were measured on this project's CPU VM (peak RSS of a worker process): about 850 MB for
-the interpreter, JAX and compiled programs, and 3 bytes of peak for each byte of replay buffer
+Factors were measured on this project's CPU VM (peak RSS of a process that trains as a worker
+does, ``quicknav_core.bench.memory``): 920-1,250 MB for the interpreter, JAX and the compiled
+programs depending on the trainer and network, and about 2.7 bytes of peak for each byte of replay buffer
 (the buffer lives once in the train state, once more while a compiled unit writes its output, and
 once more while a checkpoint is serialised).
 """
@@ -20,8 +21,20 @@ from quicknav_core.config import EnvConfig, EvalConfig, PPOConfig, SweepConfig, 
 from quicknav_core.config.eval import EVAL_BATCH
 
 MB = 2**20
-RUNTIME_BYTES = 900 * MB  # python, jax, xla, compiled programs (measured: 840-900 MB)
-REPLAY_FACTOR = 3.5  # peak bytes per replay-buffer byte (measured 2.95, with margin)
+RUNTIME_BYTES = 900 * MB  # python, jax, xla, compiled programs: an evaluation (measured 840-900 MB)
+# Python, JAX, XLA and the compiled programs of a training run, by trainer and network: the peak
+# of compiling them differs (GTrXL's attention programs take the most). Measured on this project's
+# CPU VM with `python -m quicknav_core.bench.memory` (peak RSS of a process that trains a few
+# chunks and writes checkpoints, as a worker does), at two sizes each; README has the table.
+TRAIN_RUNTIME_BYTES = {
+    "rejax-ppo": 920 * MB,
+    "rejax-sac": 1100 * MB,
+    "rejax-td3": 980 * MB,
+    "recurrent-mlp": 940 * MB,
+    "recurrent-lstm": 990 * MB,
+    "recurrent-gtrxl": 1250 * MB,
+}
+REPLAY_FACTOR = 2.85  # peak bytes per replay-buffer byte (measured 2.69 for SAC and TD3; a margin)
 TRANSIENT_FACTOR = 2.0  # inputs and outputs of a compiled call alive together
 
 
@@ -86,8 +99,11 @@ def train_memory(cfg: TrainConfig, trials: int = 1) -> Estimate:
     """Peak memory of training ``cfg`` (``trials`` side by side, as a sweep's group does)."""
     env, algo = cfg.env, cfg.algorithm
     obs = env.obs_dim
+    family = cfg.trainer_kind
+    if family == "recurrent-ppo":
+        family = f"recurrent-{cfg.network.kind}"
     parts = {
-        "runtime": RUNTIME_BYTES,
+        "runtime": TRAIN_RUNTIME_BYTES.get(family, RUNTIME_BYTES),
         "room banks": 2 * bank_bytes(env, "train"),  # the bank, and a copy while it is built
         "env batch": int(TRANSIENT_FACTOR * trials * cfg.num_envs * (env_state_bytes(env) + obs * 8)),
         "networks": int(trials * network_params(cfg) * 4 * 6),  # params, grads, adam moments, targets

@@ -67,8 +67,8 @@ class RecurrentPPOState:
     start: jax.Array  # (B,) bool: obs starts an episode
     carry: Any  # network carry after the previous step
     key: jax.Array
-    update: jax.Array  # () int32 updates done
-    env_steps: jax.Array  # () int32 env steps done (all envs)
+    update: jax.Array  # () int32 updates done (env steps done = update * num_envs * num_steps,
+    #                    counted on the host: an int32 count of env steps wrapped at 2.1 billion)
     stats: EpisodeStats  # batched (B,)
     hyper: PPOHyper
     env_params: Any  # EnvParams: traced, so reward weights can differ per vmapped trial
@@ -129,7 +129,6 @@ class RecurrentPPO:
             carry=carry,
             key=k_run,
             update=jnp.int32(0),
-            env_steps=jnp.int32(0),
             stats=jax.vmap(lambda _: EpisodeStats.zeros())(jnp.arange(b)),
             hyper=hyper,
             env_params=env_params,
@@ -163,7 +162,6 @@ class RecurrentPPO:
             tr = Trajectory(s.obs, s.start, raw, logp, value, reward, done)
             s = s.replace(
                 env_state=env_state, obs=obs, start=done, carry=carry, key=key, stats=stats,
-                env_steps=s.env_steps + self.num_envs,
             )  # fmt: skip
             return s, tr
 
@@ -275,5 +273,15 @@ class RecurrentPPO:
         """``num_updates`` updates in one compiled call; metrics averaged over them."""
         return self.chunk(state, num_updates)
 
+    # Identity: jit treats the algorithm as a static argument. Two instances with the same
+    # static shape (env shape, network, sizes, schedule length) share compiled code; everything
+    # numeric (hyperparameters, env params) is in the state.
+    def _static_key(self) -> tuple:
+        return (self.env, self.network, self.num_envs, self.num_steps, self.num_minibatches,
+                self.num_epochs, self.total_updates, self.anneal_lr)  # fmt: skip
+
     def __hash__(self) -> int:
-        return id(self)
+        return hash(self._static_key())
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, RecurrentPPO) and other._static_key() == self._static_key()

@@ -33,6 +33,7 @@ METRICS_FILE = "metrics.jsonl"
 CHECKPOINT_DIR = "checkpoint"
 STATE_FILE = "state.msgpack"
 META_FILE = "meta.json"
+REPLAY_FILE = "replay.msgpack"  # SAC/TD3: the replay buffer, written at most every replay_every_s
 CURVE_FILE = "learning_curve.png"
 
 
@@ -74,22 +75,37 @@ def _fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
-def save_checkpoint(run_dir: Path, trainer, state, chunk: int) -> Path:
-    """Write the full trainer state and its meta data; the previous checkpoint stays until the new
-    one is complete on disk (a full disk fails the write and keeps the previous checkpoint)."""
+def save_checkpoint(run_dir: Path, trainer, state, chunk: int, with_replay: bool = True) -> Path:
+    """Write the trainer state and its meta data; the previous checkpoint stays until the new one
+    is complete on disk (a full disk fails the write and keeps the previous checkpoint).
+
+    A replay buffer (SAC, TD3: hundreds of MB) is its own file: written with ``with_replay``, else
+    the previous checkpoint's is kept (hard-linked, no bytes written) and the meta data says at
+    which env step it was saved."""
     run_dir = Path(run_dir)
     ckpt, new, old = (run_dir / CHECKPOINT_DIR, run_dir / f"{CHECKPOINT_DIR}.new",
                       run_dir / f"{CHECKPOINT_DIR}.old")  # fmt: skip
     shutil.rmtree(new, ignore_errors=True)
     new.mkdir(parents=True)
     try:
-        data = trainer.to_bytes(state)
+        replay = trainer.has_replay(state)
+        data = trainer.to_bytes(state, with_replay=not replay)
         _write_synced(new / STATE_FILE, data)
         meta = {
             "chunk": chunk, "env_steps": trainer.env_steps(state),
             "trainer": trainer.config.trainer_kind, "format": "flax-msgpack-v1",
             "state_bytes": len(data), "state_sha256": hashlib.sha256(data).hexdigest(),
         }  # fmt: skip
+        if replay:
+            previous = _replay_meta(ckpt)
+            if with_replay or previous is None:
+                buffer = trainer.replay_to_bytes(state)
+                _write_synced(new / REPLAY_FILE, buffer)
+                meta["replay"] = {"env_steps": meta["env_steps"], "bytes": len(buffer),
+                                  "sha256": hashlib.sha256(buffer).hexdigest()}  # fmt: skip
+            else:
+                os.link(ckpt / REPLAY_FILE, new / REPLAY_FILE)
+                meta["replay"] = previous
         _write_synced(new / META_FILE, json.dumps(meta).encode())
         _fsync_dir(new)
     except BaseException:
@@ -104,18 +120,32 @@ def save_checkpoint(run_dir: Path, trainer, state, chunk: int) -> Path:
     return ckpt
 
 
+def _replay_meta(folder: Path) -> dict[str, Any] | None:
+    """The replay entry of a complete checkpoint's meta data (None if it has none)."""
+    try:
+        meta = json.loads((folder / META_FILE).read_text())
+    except (OSError, ValueError):
+        return None
+    return meta.get("replay") if (folder / REPLAY_FILE).exists() else None
+
+
+def _matches(data: bytes, size: int | None, digest: str) -> bool:
+    return len(data) == size and hashlib.sha256(data).hexdigest() == digest
+
+
 def _complete(folder: Path) -> bool:
-    """Whether a checkpoint folder holds a state that matches its meta data."""
+    """Whether a checkpoint folder holds a state (and replay buffer) that match its meta data."""
     try:
         meta = json.loads((folder / META_FILE).read_text())
         data = (folder / STATE_FILE).read_bytes()
-    except (OSError, ValueError):
+        if "replay" in meta and not _matches((folder / REPLAY_FILE).read_bytes(),
+                                             meta["replay"]["bytes"], meta["replay"]["sha256"]):  # fmt: skip
+            return False
+    except (OSError, ValueError, KeyError):
         return False
     if "state_sha256" not in meta:  # written before checksums were: as good as its files
         return True
-    return len(data) == meta.get("state_bytes") and (
-        hashlib.sha256(data).hexdigest() == meta["state_sha256"]
-    )
+    return _matches(data, meta.get("state_bytes"), meta["state_sha256"])
 
 
 def checkpoint_dir(run_dir: Path) -> Path | None:
@@ -158,6 +188,8 @@ def load_run(run_dir: Path, trainer=None):
     meta = json.loads((ckpt / META_FILE).read_text())
     trainer = trainer if trainer is not None and trainer.config == config else make_trainer(config)
     state = trainer.from_bytes((ckpt / STATE_FILE).read_bytes())
+    if "replay" in meta:
+        state = trainer.with_replay_bytes(state, (ckpt / REPLAY_FILE).read_bytes())
     return config, trainer, state, meta
 
 
@@ -177,6 +209,7 @@ def train_run(
     trainer=None,
     max_chunk_s: float | None = None,
     interrupt: Callable[[], bool] | None = None,
+    replay_every_s: float = 0.0,
 ) -> dict[str, Any]:
     """Train ``config`` into ``run_dir`` (or continue it with ``resume``). Returns a summary.
 
@@ -184,6 +217,11 @@ def train_run(
     ``interrupt()`` (asked after every unit) says stop. After every chunk: metrics are appended, a
     checkpoint is written every ``checkpoint_every`` chunks (and always at the end or on a stop),
     and ``callback`` may return True to stop. Grouping units into chunks never changes the result.
+
+    ``replay_every_s``: a replay buffer (SAC, TD3) is written with a checkpoint only when this many
+    seconds have passed since it last was (0: every time, and a resumed run is exactly the
+    uninterrupted one); between, checkpoints carry the last one written, so a run resumed from one
+    refills from a buffer up to ``replay_every_s`` old. The last checkpoint of a run has it fresh.
     """
     from quicknav_core.train.trainers import make_trainer
 
@@ -204,6 +242,7 @@ def train_run(
     chunks = math.ceil(trainer.num_updates / trainer.updates_per_chunk)  # without time bounds
     total = trainer.total_env_steps
     done = trainer.updates_done(state)
+    replay_saved = time.monotonic()  # a resumed run has its buffer as the checkpoint has it
     with TensorBoardLog(run_dir) as board:
         stopped = False
         while done < trainer.num_updates:
@@ -231,16 +270,28 @@ def train_run(
             board.add(result.record())
             asked = bool(callback(result)) if callback else False
             stop = interrupted or asked
-            if stop or done >= trainer.num_updates or chunk % checkpoint_every == 0:
-                save_checkpoint(run_dir, trainer, state, chunk)
+            last = stop or done >= trainer.num_updates
+            if last or chunk % checkpoint_every == 0:
+                due = last or time.monotonic() - replay_saved >= replay_every_s
+                save_checkpoint(run_dir, trainer, state, chunk, with_replay=due)
+                if due:
+                    replay_saved = time.monotonic()
             if stop:
                 stopped = True
                 break
-    plot_learning_curve(run_dir)
+    warnings = []
+    try:
+        plot_learning_curve(run_dir)
+    except Exception as e:  # a picture never costs a run its checkpoint and numbers
+        import matplotlib.pyplot as plt
+
+        plt.close("all")
+        (run_dir / CURVE_FILE).unlink(missing_ok=True)
+        warnings.append(f"{CURVE_FILE} was not drawn: {type(e).__name__}: {e}")
     return {
         "run_dir": str(run_dir), "chunks_done": chunk, "chunks": max(chunks, chunk),
         "env_steps": trainer.env_steps(state), "total_steps": total, "stopped": stopped,
-        "final": read_metrics(run_dir)[-1] if chunk else {},
+        "final": read_metrics(run_dir)[-1] if chunk else {}, "warnings": warnings,
     }  # fmt: skip
 
 

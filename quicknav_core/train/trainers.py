@@ -228,14 +228,31 @@ class Trainer:
             state = self.place(self.with_pool_count(state, self.pool.level_counts[nxt]))
         return state, metrics
 
-    def to_bytes(self, state) -> bytes:
-        return serialization.to_bytes(jax.device_get(state))
+    def to_bytes(self, state, with_replay: bool = True) -> bytes:
+        """The state as msgpack (flax); without the replay buffer if ``with_replay`` is False."""
+        data = serialization.to_state_dict(jax.device_get(state))
+        if not with_replay:
+            data = {k: v for k, v in data.items() if k != "replay_buffer"}
+        return serialization.msgpack_serialize(data)
+
+    def has_replay(self, state) -> bool:
+        return hasattr(state, "replay_buffer")
+
+    def replay_to_bytes(self, state) -> bytes:
+        return serialization.to_bytes(jax.device_get(state.replay_buffer))
+
+    def with_replay_bytes(self, state, data: bytes):
+        """``state`` with the replay buffer ``replay_to_bytes`` gave."""
+        buffer = serialization.from_bytes(jax.device_get(state.replay_buffer), data)
+        return self.place(state.replace(replay_buffer=buffer))
 
     def from_bytes(self, data: bytes):
         """A state from ``to_bytes``; fields added since the checkpoint was written (the
         curriculum's ``pool_count``) take their fresh values instead of failing the restore."""
         target = jax.device_get(self.init_state())
-        loaded = _with_missing(serialization.to_state_dict(target), serialization.msgpack_restore(data))
+        fresh = serialization.to_state_dict(target)
+        loaded = _with_missing(fresh, serialization.msgpack_restore(data))
+        _check_shapes(fresh, loaded, self.config)
         return self.place(serialization.from_state_dict(target, loaded))
 
     def state_sharding(self, state) -> Any:
@@ -278,6 +295,25 @@ def _with_missing(fresh: Any, loaded: Any) -> Any:
     if not isinstance(fresh, dict) or not isinstance(loaded, dict):
         return loaded
     return {k: _with_missing(v, loaded[k]) if k in loaded else v for k, v in fresh.items()}
+
+
+def _check_shapes(fresh: Any, loaded: Any, config: TrainConfig, path: str = "") -> None:
+    """A ValueError naming the first array of a checkpoint whose shape is not what the config's
+    network and buffers give (instead of flax failing later, in the middle of an evaluation)."""
+    if isinstance(fresh, dict) and isinstance(loaded, dict):
+        for k, v in fresh.items():
+            if k in loaded:
+                _check_shapes(v, loaded[k], config, f"{path}/{k}")
+        return
+    want, got = getattr(fresh, "shape", None), getattr(loaded, "shape", None)
+    if want is not None and got is not None and tuple(want) != tuple(got):
+        hint = ""
+        if config.trainer_kind == "rejax-sac":
+            hint = (" (SAC checkpoints written before QuickNav 0.2 hold 64x64 networks whatever"
+                    " network.hidden_sizes said: rejax ignored it; set network.hidden_sizes to"
+                    " [64, 64] in the run's config.json to load one)")  # fmt: skip
+        raise ValueError(f"checkpoint array {path} has shape {tuple(got)}; this run's config"
+                         f" gives {tuple(want)}{hint}")  # fmt: skip
 
 
 def _floats(metrics: dict[str, Any]) -> dict[str, float]:
@@ -334,7 +370,7 @@ class RecurrentPPOTrainer(Trainer):
         return self.curriculum(self.place(state), out)
 
     def env_steps(self, state) -> int:
-        return int(state.env_steps)
+        return int(state.update) * self.config.steps_per_update
 
     def pool_count(self, state) -> int:
         return int(state.env_params.pool_count)
@@ -382,9 +418,9 @@ class RejaxTrainer(Trainer):
         super().__init__(config)
         import rejax
 
+        from quicknav_core.train import rejax_parts
+
         algo = config.algorithm
-        net = config.network
-        hidden = tuple(net.hidden_sizes)
         env = StatsWrapper(self.env)
         common = {
             "env": env, "env_params": self.env_params, "num_envs": config.num_envs,
@@ -398,57 +434,49 @@ class RejaxTrainer(Trainer):
                 "num_steps": algo.num_steps, "num_epochs": algo.num_epochs,
                 "num_minibatches": algo.num_minibatches, "gae_lambda": algo.gae_lambda,
                 "clip_eps": algo.clip_eps, "ent_coef": algo.ent_coef, "vf_coef": algo.vf_coef,
-                "agent_kwargs": {"hidden_layer_sizes": hidden, "activation": "relu"},
             }  # fmt: skip
         elif isinstance(algo, SACConfig):
             self.kind = "rejax-sac"
-            cls = rejax.SAC
+            cls = rejax_parts.SAC
             kwargs = {
                 "batch_size": algo.batch_size, "buffer_size": algo.buffer_size,
                 "fill_buffer": algo.fill_buffer, "polyak": algo.polyak,
                 "target_entropy_ratio": algo.target_entropy_ratio,
                 "target_update_freq": algo.target_update_freq, "num_epochs": algo.num_epochs,
-                "agent_kwargs": {"hidden_layer_sizes": hidden, "activation": "relu"},
             }  # fmt: skip
         elif isinstance(algo, TD3Config):
             self.kind = "rejax-td3"
-            cls = rejax.TD3
+            cls = rejax_parts.TD3
             kwargs = {
                 "batch_size": algo.batch_size, "buffer_size": algo.buffer_size,
                 "fill_buffer": algo.fill_buffer, "polyak": algo.polyak,
                 "exploration_noise": algo.exploration_noise, "target_noise": algo.target_noise,
                 "target_noise_clip": algo.target_noise_clip, "policy_delay": algo.policy_delay,
                 "num_epochs": algo.num_epochs,
-                "actor_kwargs": {"activation": "relu"}, "critic_kwargs": {"activation": "relu"},
             }  # fmt: skip
         else:  # pragma: no cover - config validation prevents this
             raise TypeError(type(algo).__name__)
         steps = self.steps_per_unit
         created = cls.create(total_timesteps=steps, eval_freq=steps, **common, **kwargs)
-        if self.kind == "rejax-td3":
-            # rejax's TD3 fixes its networks at 64x64; put the configured sizes in their place
-            from rejax.networks import DeterministicPolicy, QNetwork
-
-            created = created.replace(
-                actor=DeterministicPolicy(
-                    2, (-1.0, 1.0), hidden_layer_sizes=hidden, activation=nn.relu
-                ),
-                critic=QNetwork(hidden_layer_sizes=hidden, activation=nn.relu),
-            )
+        # rejax's own networks are not always what the config names (see rejax_parts)
+        created = created.replace(**rejax_parts.rejax_networks(config))
         # One unit = one rejax "eval iteration" (its callback is a no-op: the env wrapper counts
         # episode statistics); calling it again continues from the train state.
         self.algo = created.replace(eval_callback=_stats_callback)
-        self._train = jax.jit(lambda ts: self.algo.train(train_state=ts)[0])
         self._sharded_train = None  # compiled on first use when the run spans several devices
         self._clear = jax.jit(jax.vmap(lambda s: s.clear_totals()))
         self._batched: dict[int, Any] = {}
 
     def init_state(self):
-        return self.place(self.algo.init_state(jax.random.PRNGKey(self.config.seed)))
+        from quicknav_core.train.rejax_parts import shareable_state
+
+        state = self.algo.init_state(jax.random.PRNGKey(self.config.seed))
+        algo = self.config.algorithm
+        return self.place(shareable_state(state, algo.learning_rate, algo.max_grad_norm))
 
     def run_unit(self, state):
         if self.mesh is None:
-            return jax.block_until_ready(self._train(state)), {}
+            return jax.block_until_ready(_rejax_unit(self.algo, state)), {}
         if self._sharded_train is None:
             algo = self.algo
             self._sharded_train = self.compile_sharded(
@@ -499,6 +527,14 @@ class RejaxTrainer(Trainer):
 
 def _stats_callback(algo, ts, rng):
     return jnp.zeros(())
+
+
+@jax.jit
+def _rejax_unit(algo, train_state):
+    """One unit of a rejax algorithm. The algorithm is an argument, not a closure: its numbers
+    (learning rate, env params with the room bank) are traced, so runs that differ only in them
+    share one compiled program."""
+    return algo.train(train_state=train_state)[0]
 
 
 def make_trainer(config: TrainConfig) -> Trainer:

@@ -8,8 +8,8 @@ from gymnasium.utils.env_checker import check_env
 from gymnasium.vector import AutoresetMode
 from quicknav_client.gym import RemoteEnv, RemoteVectorEnv
 
-from service.rollout.server import BackgroundServer
-from service.settings import Settings
+from quicknav_service.rollout.server import BackgroundServer
+from quicknav_service.settings import Settings
 from tests.service.test_rollout import CONFIG, _reference, close
 
 N = 4

@@ -128,7 +128,8 @@ def test_wait__follows_the_event_stream_to_the_terminal_event_then_refreshes(tra
     job, events = trained
     kinds = [e["type"] for e in events]
     assert kinds[0] == "started" and kinds[-1] == "succeeded", kinds
-    assert kinds.count("progress") == 3
+    assert kinds.count("progress") == 4  # the compiling phase, then one per chunk
+    assert events[1]["metrics"]["phase"] == "compiling" and events[1]["progress"] == 0
     ids = [e["id"] for e in events]
     assert ids == sorted(set(ids))
     progress = [e["progress"] for e in events if e["type"] == "progress"]
@@ -180,7 +181,8 @@ def test_evaluate__maps_to_the_eval_request__cancel_wait_delete(trained, client)
     job, _ = trained
     ev = client.evaluate(job=job, episodes=4, seed=3)
     assert ev.kind == "eval" and ev.status == "queued"
-    assert ev.request == {"source": job.id, "episodes": 4, "seed": 3, "split": "test",
+    # the body the API publishes names the train job ``job_id``
+    assert ev.request == {"job_id": job.id, "episodes": 4, "seed": 3, "split": "test",
                           "deterministic": True}  # fmt: skip
     # the stored config is resolved: the train job's own env, every field filled in
     assert ev.config["policy"] == "trained" and ev.config["source"] == job.id

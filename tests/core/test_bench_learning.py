@@ -195,6 +195,40 @@ def test_bench_learning__rerun_scoreless_replaces_only_seeds_without_episodes(tm
     assert trained == []
 
 
+def test_bench_learning__rerun_before_retrains_seeds_of_older_versions_only(tmp_path, monkeypatch):
+    """--rerun-before 0.2.0 retrains the chosen rows' seeds stamped older (or not stamped), and
+    their stale run folders; seeds stamped 0.2.0 and rows not chosen stay."""
+    import quicknav_core.bench.learning as bl
+
+    out, runs = tmp_path / "results", tmp_path / "runs"
+    monkeypatch.setattr(bl, "baselines", lambda runs_dir: {})
+    out.mkdir()
+    new = _run(0.9, 70.0, 8.0, 1)
+    new["training"]["quicknav"] = "0.2.0"
+    old = [_run(0.5, 90.0, 8.0, 0), new, _run(0.5, 90.0, 8.0, 2)]
+    (out / "report.json").write_text(json.dumps({"rows": {"paper-sac": {"runs": old},
+                                                          "paper-td3": {"runs": old}}}))  # fmt: skip
+    stale = runs / "paper-sac-s2" / "eval"
+    stale.mkdir(parents=True)
+    (stale / "eval.json").write_text(json.dumps(_run(0.4, 95.0, 8.0, 2)))  # an unstamped run folder
+    trained: list[tuple[str, int]] = []
+
+    def fake_run_one(row, seed, runs_dir, scale=1.0, say=print):
+        assert not (runs_dir / f"{row.key}-s{seed}").exists()  # the stale folder went first
+        trained.append((row.key, seed))
+        run = _run(0.97, 66.0, 8.0, seed)
+        run["training"]["quicknav"] = "0.2.0"
+        return run
+
+    monkeypatch.setattr(bl, "run_one", fake_run_one)
+    _, data = bl.run_learning_bench(out, runs, rows=["paper-sac"], seeds=3, rerun_before="0.2.0")
+    assert trained == [("paper-sac", 0), ("paper-sac", 2)]
+    assert [r["metrics"]["success_rate"] for r in data["rows"]["paper-sac"]["runs"]] == [0.97, 0.9, 0.97]
+    assert [r["metrics"]["success_rate"] for r in data["rows"]["paper-td3"]["runs"]] == [0.5, 0.9, 0.5]
+    assert bl._older_than({"training": {"quicknav": "0.1.9"}}, "0.2.0")
+    assert not bl._older_than({"training": {"quicknav": "0.10.0"}}, "0.2.0")
+
+
 def test_bench_learning__a_seed_another_process_replaced_is_not_written_back_stale(tmp_path, monkeypatch):
     """Process A started with an old seed of row X; process B reran it meanwhile. A's writes keep B's."""
     import quicknav_core.bench.learning as bl

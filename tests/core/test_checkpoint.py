@@ -22,8 +22,11 @@ from quicknav_core.train.run import (
 class FakeTrainer:
     config = SimpleNamespace(trainer_kind="fake")
 
-    def to_bytes(self, state) -> bytes:
+    def to_bytes(self, state, with_replay: bool = True) -> bytes:
         return state
+
+    def has_replay(self, state) -> bool:
+        return False
 
     def env_steps(self, state) -> int:
         return len(state)
@@ -98,3 +101,43 @@ def test_meta_records_size_and_checksum(tmp_path: Path):
     meta = json.loads((tmp_path / CHECKPOINT_DIR / META_FILE).read_text())
     assert meta["state_bytes"] == 3 and len(meta["state_sha256"]) == 64
     assert meta["trainer"] == "fake" and meta["env_steps"] == 3
+
+
+def test_replay_buffer__written_at_most_every_replay_every_s_and_restored(tmp_path, monkeypatch):
+    """SAC with a replay buffer: with replay_every_s large, checkpoints after the first carry the
+    buffer written then (hard-linked, not written again) and say at which env step; the last
+    checkpoint of the run writes it fresh; a resumed state holds the buffer the checkpoint has."""
+    import json
+
+    import numpy as np
+
+    from quicknav_core.config import resolve_train
+    from quicknav_core.train import run as run_mod
+    from quicknav_core.train.run import REPLAY_FILE, load_run, train_run
+
+    cfg = resolve_train({"preset": "paper-sac", "overrides": {
+        "env.grid_size": 8, "env.train_rooms": 8, "env.test_rooms": 8, "num_envs": 4,
+        "algorithm.buffer_size": 40_000, "algorithm.batch_size": 16, "algorithm.fill_buffer": 16,
+        "total_steps": 64, "chunk_steps": 16}})  # fmt: skip
+    written = []
+    real = run_mod._write_synced
+    monkeypatch.setattr(run_mod, "_write_synced",
+                        lambda path, data: (written.append(path.name), real(path, data))[1])  # fmt: skip
+    metas = []
+    real_save = run_mod.save_checkpoint
+
+    def save(*args, **kwargs):
+        out = real_save(*args, **kwargs)
+        metas.append(json.loads((out / "meta.json").read_text()))
+        return out
+
+    monkeypatch.setattr(run_mod, "save_checkpoint", save)
+    train_run(cfg, tmp_path / "run", replay_every_s=3600)
+    assert [m["env_steps"] for m in metas] == [16, 32, 48, 64]
+    assert written.count(REPLAY_FILE) == 2  # the first checkpoint and the last
+    assert [m["replay"]["env_steps"] for m in metas] == [16, 16, 16, 64]
+    assert all(m["state_bytes"] < m["replay"]["bytes"] / 3 for m in metas)  # networks apart
+    _, trainer, state, meta = load_run(tmp_path / "run")
+    assert meta["replay"]["env_steps"] == 64
+    buf = state.replay_buffer
+    assert int(buf.index) == 64 and np.abs(np.asarray(buf.data.obs[:64])).sum() > 0

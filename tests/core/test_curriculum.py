@@ -109,7 +109,7 @@ def _pool_episodes(pool, count: int) -> set[tuple[int, int]]:
 
 @pytest.mark.parametrize("kind", ["mlp", "lstm"])  # rejax PPO and the recurrent PPO
 def test_trainer__opens_the_next_level_at_the_threshold_without_recompiling(kind):
-    from quicknav_core.train.trainers import make_trainer
+    from quicknav_core.train.trainers import _rejax_unit, make_trainer
 
     trainer = make_trainer(_tiny(kind, promote_at=0.8))
     pool = trainer.pool
@@ -120,7 +120,7 @@ def test_trainer__opens_the_next_level_at_the_threshold_without_recompiling(kind
     assert _episodes_of(trainer, state) <= allowed  # the first resets already use the first level
     for _ in range(2):  # (the first state's layout differs from the steady one's: 2 programs)
         state, _ = trainer.run_unit(state)
-    compiled = trainer._train if kind == "mlp" else type(trainer.algo).train_chunk
+    compiled = _rejax_unit if kind == "mlp" else type(trainer.algo).train_chunk
     programs = compiled._cache_size()
     state, m = trainer.curriculum(state, {"success_rate": 0.79})
     assert m["curriculum_level"] == level and trainer.pool_count(state) == pool.level_counts[level]

@@ -99,8 +99,8 @@ def test_data_parallel__device_count_must_divide_the_env_batch():
 
 
 def test_data_parallel__api_refuses_more_devices_than_its_workers_have(tmp_path):
-    from service.api.main import create_app
-    from service.settings import Settings
+    from quicknav_service.api.main import create_app
+    from quicknav_service.settings import Settings
 
     client = TestClient(create_app(Settings(_env_file=None, data_dir=tmp_path, max_devices=2),
                                    start_workers=False))  # fmt: skip

@@ -23,6 +23,7 @@ from quicknav_core.config import (
     traced_fields,
 )
 from quicknav_core.config.sweep import BUILTIN_TOTAL_STEPS
+from quicknav_core.config.train import with_trainer_defaults
 
 
 # --------------------------------------------------------------------------- overrides
@@ -53,7 +54,7 @@ def test_overrides__another_variant_starts_from_its_defaults():
 
 
 def test_overrides__unknown_keys_and_bad_values_are_named():
-    with pytest.raises(OverrideError, match="unknown field 'gird_size' in env; known: room_size"):
+    with pytest.raises(OverrideError, match="unknown field 'gird_size' in env; did you mean 'grid_size'\\? known: room_size"):
         apply_overrides(TrainConfig(), {"env.gird_size": 8})
     with pytest.raises(OverrideError, match="'seed' has no sub-fields"):
         apply_overrides(TrainConfig(), {"seed.x": 1})
@@ -67,7 +68,8 @@ def test_overrides__unknown_keys_and_bad_values_are_named():
 def test_resolve_train__preset_or_config_then_overrides():
     cfg = resolve_train({"preset": "paper-ppo", "overrides": {"total_steps": 524288, "seed": 2}})
     expected = get_preset("paper-ppo").model_copy(update={"total_steps": 524288, "seed": 2})
-    assert cfg == expected
+    assert cfg == with_trainer_defaults(expected)  # what the preset leaves to rejax's PPO, written in
+    assert cfg.network.init_log_std == 0.0
     from_config = resolve_train({"config": cfg.model_dump(mode="json"),
                                  "overrides": {"env.grid_size": 8}})  # fmt: skip
     assert from_config.env.grid_size == 8 and from_config.total_steps == 524288
@@ -129,6 +131,59 @@ def test_resolve_eval__baseline_env_trained_env_and_the_old_names():
     assert resolve_eval({"policy": "random", "stochastic": True}).deterministic is False
     with pytest.raises(ConfigError, match="contradicts"):
         resolve_eval({"policy": "random", "stochastic": True, "deterministic": True})
+
+
+def test_resolve__every_field_error_of_a_request_at_once():
+    with pytest.raises(ConfigError) as e:
+        resolve_train({"preset": "demo", "overrides": {
+            "env.gird_size": 8, "env.grid_size": 1000, "num_envs": -5}})  # fmt: skip
+    by_loc = {tuple(i["loc"]): i["msg"] for i in e.value.items}
+    assert set(by_loc) == {("overrides", "env.gird_size"), ("overrides", "env.grid_size"),
+                           ("overrides", "num_envs")}  # fmt: skip
+    assert "less than or equal to 128" in by_loc[("overrides", "env.grid_size")]
+    assert "greater than or equal to 1" in by_loc[("overrides", "num_envs")]
+    with pytest.raises(ConfigError) as e:
+        resolve_sweep({"space": "ppo", "overrides": {"trials": 0, "objectiv": "spl",
+                                                     "env.grid_size": 2}})  # fmt: skip
+    assert {tuple(i["loc"]) for i in e.value.items} == {
+        ("overrides", "trials"), ("overrides", "objectiv"), ("overrides", "env.grid_size")}  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("request_", "loc"),
+    [
+        ({"preset": "demo", "overrides": {"env": {"grid_size": 1000}}},
+         ["overrides", "env", "grid_size"]),
+        ({"preset": "demo", "overrides": {"env": {"reward": {"goal_reward": -1}}}},
+         ["overrides", "env", "reward", "goal_reward"]),
+        ({"config": {"env": {"grid_size": 1000}}}, ["config", "env", "grid_size"]),
+    ],
+)  # fmt: skip
+def test_resolve__a_nested_section_error_names_the_field_not_the_section(request_, loc):
+    with pytest.raises(ConfigError) as e:
+        resolve_train(request_)
+    assert [i["loc"] for i in e.value.items] == [loc]
+
+
+def test_resolve__unknown_keys_say_what_was_meant():
+    with pytest.raises(ConfigError) as e:
+        resolve_train({"preset": "demo", "total_steps": 100000})
+    (item,) = e.value.items
+    assert item["loc"] == ["total_steps"]
+    assert item["msg"] == ("unknown field 'total_steps': training settings go in overrides:"
+                           ' {"overrides": {"total_steps": ...}}')  # fmt: skip
+    with pytest.raises(ConfigError, match="did you mean 'overrides'"):
+        resolve_train({"preset": "demo", "overides": {}})
+    with pytest.raises(ConfigError, match="did you mean 'learning_rate'"):
+        resolve_train({"preset": "demo", "overrides": {"algorithm.learning_rat": 1e-3}})
+    with pytest.raises(ConfigError, match=r"in config\.algorithm; did you mean 'batch_size'"):
+        resolve_train({"config": {"algorithm": {"name": "sac", "batch_sizes": 3}}})
+    with pytest.raises(ConfigError, match="sweep settings go in overrides"):
+        resolve_sweep({"space": "ppo", "objective": "spl"})
+    # a name nothing resembles: no guess, the known names
+    with pytest.raises(ConfigError) as e:
+        resolve_train({"preset": "demo", "overrides": {"zzzz": 1}})
+    assert "did you mean" not in str(e.value) and "known: env, algorithm" in str(e.value)
 
 
 # --------------------------------------------------------------------------- traced numbers

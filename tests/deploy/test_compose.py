@@ -1,7 +1,7 @@
 """deploy/docker-compose.yml and the Dockerfile name only real commands, options, settings and ports.
 
 No Docker needed: the files are parsed and checked against the typer app of quicknav_cli.main,
-service.settings.Settings, the FastAPI app and pyproject.toml, so a renamed CLI option, setting,
+quicknav_service.settings.Settings, the FastAPI app and pyproject.toml, so a renamed CLI option, setting,
 port or route fails here rather than in a container.
 """
 
@@ -22,8 +22,8 @@ import yaml
 from fastapi.testclient import TestClient
 
 from quicknav_cli.main import app as cli_app
-from service.api.main import create_app
-from service.settings import Settings
+from quicknav_service.api.main import create_app
+from quicknav_service.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[2]
 COMPOSE_FILE = ROOT / "deploy" / "docker-compose.yml"
@@ -196,7 +196,7 @@ def settings_from(env: dict[str, str], monkeypatch: pytest.MonkeyPatch) -> Setti
     """Settings as a container with exactly these variables builds them; unknown names fail."""
     fields = set(Settings.model_fields)
     unknown = [k for k in env if k.startswith("QUICKNAV_") and k[9:].lower() not in fields]
-    assert not unknown, f"not fields of service.settings.Settings: {unknown}"
+    assert not unknown, f"not fields of quicknav_service.settings.Settings: {unknown}"
     for key in list(os.environ):
         if key.startswith("QUICKNAV_"):
             monkeypatch.delenv(key)

@@ -13,10 +13,11 @@ import httpx
 import pytest
 import uvicorn
 
-from service.api.app import create_app
-from service.jobs.sqlite_store import SQLiteJobStore
-from service.settings import Settings
-from service.worker import Worker
+from quicknav_service.api.app import create_app
+from quicknav_service.api.http import uvicorn_options
+from quicknav_service.jobs.sqlite_store import SQLiteJobStore
+from quicknav_service.settings import Settings
+from quicknav_service.worker import Worker
 
 
 def quicknav_process(args: list[str], **env: str) -> subprocess.Popen:
@@ -61,7 +62,8 @@ class LiveServer:
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         self.server = uvicorn.Server(
-            uvicorn.Config(self.app, host="127.0.0.1", port=self.port, log_level="warning")
+            uvicorn.Config(self.app, host="127.0.0.1", port=self.port, log_level="warning",
+                           **uvicorn_options(self.settings))
         )
         self.thread = threading.Thread(target=self.server.run, daemon=True)
 

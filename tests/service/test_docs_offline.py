@@ -6,8 +6,8 @@ import re
 
 from fastapi.testclient import TestClient
 
-from service.api.main import create_app
-from service.settings import Settings
+from quicknav_service.api.main import create_app
+from quicknav_service.settings import Settings
 
 
 def test_docs_page_and_its_assets_are_served_by_the_api(tmp_path):

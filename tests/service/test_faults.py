@@ -22,10 +22,10 @@ import pytest
 import redis
 
 from quicknav_core.config import resolve_eval, resolve_train
-from service.jobs.models import JobStatus, StoreUnavailable
-from service.jobs.redis_store import RedisJobStore
-from service.jobs.sqlite_store import SQLiteJobStore
-from service.supervisor import exit_reason
+from quicknav_service.jobs.models import JobStatus, StoreUnavailable
+from quicknav_service.jobs.redis_store import RedisJobStore
+from quicknav_service.jobs.sqlite_store import SQLiteJobStore
+from quicknav_service.supervisor import exit_reason
 from tests.service.conftest import LiveServer
 from tests.service.faults import RedisServer, SmallDisk
 
@@ -86,9 +86,9 @@ def test_api__nul_bytes_short_ids_and_ambiguous_prefixes(live):
     assert r.status_code == 400 and "NUL" in r.text
     short = a["id"][:8]
     assert httpx.get(f"{live.url}/jobs/{short}").json()["id"] == a["id"]
-    assert httpx.post(f"{live.url}/jobs/{short}/cancel").json()["status"] == "cancelled"
-    r = httpx.get(f"{live.url}/jobs/{short[:3]}")  # shorter than 4: not an id prefix
-    assert r.status_code == 404
+    assert httpx.post(f"{live.url}/jobs/{short}/cancel", json={}).json()["status"] == "cancelled"
+    r = httpx.get(f"{live.url}/jobs/{short[:3]}")  # shorter than 4: not an id prefix, says so
+    assert r.status_code == 422 and "give at least 4 characters" in r.text, r.text
     # make two jobs share a prefix: the API asks for more characters instead of guessing
     store = live.store
     twin, _ = store.submit("eval", {"policy": "random"}, {})
@@ -101,8 +101,8 @@ def test_api__nul_bytes_short_ids_and_ambiguous_prefixes(live):
 def test_grpc__start_refusals_are_exact_and_bounded(tmp_path):
     from quicknav_client.rollout import RolloutClient, RolloutError
 
-    from service.rollout.server import BackgroundServer
-    from service.settings import Settings
+    from quicknav_service.rollout.server import BackgroundServer
+    from quicknav_service.settings import Settings
 
     settings = Settings(data_dir=tmp_path / "data", max_lidar_beams=256)
     server = BackgroundServer(settings, port=0).start()
@@ -279,7 +279,7 @@ def test_cancel__running_eval_and_a_huge_chunk_stop_within_seconds(tmp_path):
             "policy": "random", "episodes": 2560, "env": {"grid_size": 8, "max_steps": 60}}).json()  # fmt: skip
         wait_for(lambda: job_of(live, ev["id"])["progress"] > 0, 180, "the first batch")
         t0 = time.time()
-        httpx.post(f"{live.url}/jobs/{ev['id']}/cancel")
+        httpx.post(f"{live.url}/jobs/{ev['id']}/cancel", json={})
         done = wait_for(lambda: (j := job_of(live, ev["id"]))["status"] in (
             "cancelled", "succeeded") and j, 60, "the eval to stop")  # fmt: skip
         assert done["status"] == "cancelled" and time.time() - t0 < 10
@@ -290,7 +290,7 @@ def test_cancel__running_eval_and_a_huge_chunk_stop_within_seconds(tmp_path):
         tr = httpx.post(f"{live.url}/jobs/train", json=body).json()
         wait_for(lambda: job_of(live, tr["id"])["progress"] > 0, 180, "the first chunk")
         t0 = time.time()
-        httpx.post(f"{live.url}/jobs/{tr['id']}/cancel")
+        httpx.post(f"{live.url}/jobs/{tr['id']}/cancel", json={})
         done = wait_for(lambda: (j := job_of(live, tr["id"]))["status"] in (
             "cancelled", "succeeded") and j, 60, "the train job to stop")  # fmt: skip
         assert done["status"] == "cancelled" and time.time() - t0 < 10
@@ -345,3 +345,50 @@ def test_eval__batched_runner_without_picture_episodes():
     env, params = cfg.env.build("test")
     ep = run_episodes(env, params, RandomAgent(), cfg)
     assert ep.success.shape == (6,) and ep.gif["theta"].shape[0] == 0
+
+
+# --------------------------------------------------------------------------- pictures
+@pytest.mark.slow  # trains a tiny job and evaluates it through a worker: ~40 s on 2 cores
+def test_pictures_that_fail__jobs_succeed_with_their_numbers_and_a_warning_for_each(
+    tmp_path, monkeypatch
+):
+    """Every picture raises (as matplotlib did on a bin where every episode succeeded): the train
+    and eval jobs still succeed, their numbers are stored and served, and each job names every
+    missing picture in its warnings."""
+    from quicknav_core.eval import pictures
+    from quicknav_core.train import run as train_run
+
+    def broken(*args, **kwargs):
+        raise ValueError("'yerr' must not contain negative values")
+
+    monkeypatch.setattr(train_run, "plot_learning_curve", broken)
+    for name in ("draw_trajectories", "draw_difficulty", "draw_gif"):
+        monkeypatch.setattr(pictures, name, broken)
+    with LiveServer(tmp_path) as live:
+        worker, _ = live.run_worker_in_background()
+        ended = ("failed", "succeeded", "cancelled")
+        r = httpx.post(f"{live.url}/jobs/train", json={"preset": "demo", "overrides": TINY})
+        train = wait_for(lambda: (j := job_of(live, r.json()["id"]))["status"] in ended and j,
+                         300, "the train job")  # fmt: skip
+        assert train["status"] == "succeeded", train["error"]
+        assert train["result"]["env_steps"] == 1536
+        assert train["warnings"] == [
+            "learning_curve.png was not drawn: ValueError: 'yerr' must not contain negative values"]
+        files = {a["name"] for a in httpx.get(f"{live.url}/jobs/{train['id']}/artifacts").json()["artifacts"]}
+        assert "metrics.jsonl" in files and "learning_curve.png" not in files
+        assert any(f.startswith("checkpoint/") for f in files), files
+
+        r = httpx.post(f"{live.url}/jobs/eval", json={"job_id": train["id"], "episodes": 6})
+        assert r.status_code == 202, r.text
+        ev = wait_for(lambda: (j := job_of(live, r.json()["id"]))["status"] in ended and j,
+                      300, "the eval job")  # fmt: skip
+        assert ev["status"] == "succeeded", ev["error"]
+        assert ev["result"]["metrics"]["episodes"] == 6
+        missing = sorted(w.split(" ")[0] for w in ev["warnings"])
+        assert {"difficulty.png", "trajectories.png"} <= set(missing), ev["warnings"]
+        assert ev["result"]["warnings"] == ev["warnings"]
+        raw = httpx.get(f"{live.url}/jobs/{ev['id']}/artifacts/eval.json").text
+        assert "NaN" not in raw  # standard JSON: an undefined mean (no successes yet) is null
+        stored = json.loads(raw)
+        assert stored["metrics"] == ev["result"]["metrics"] and stored["warnings"] == ev["warnings"]
+        worker.shutdown.set()

@@ -10,9 +10,9 @@ import pytest
 import schemathesis
 from hypothesis import HealthCheck, given, settings
 
-from service.api.main import create_app
-from service.jobs.sqlite_store import SQLiteJobStore
-from service.settings import Settings
+from quicknav_service.api.main import create_app
+from quicknav_service.jobs.sqlite_store import SQLiteJobStore
+from quicknav_service.settings import Settings
 
 EXAMPLES_PER_OPERATION = 15
 

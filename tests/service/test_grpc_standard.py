@@ -16,8 +16,8 @@ from grpc_reflection.v1alpha.proto_reflection_descriptor_database import (
 )
 from quicknav_client import RolloutClient
 
-from service.rollout.server import ROLLOUT_SERVICE, BackgroundServer
-from service.settings import Settings
+from quicknav_service.rollout.server import ROLLOUT_SERVICE, BackgroundServer
+from quicknav_service.settings import Settings
 from tests.service.conftest import free_port, quicknav_process, wait_until_up
 
 SMALL = {"grid_size": 8, "train_rooms": 16, "test_rooms": 8, "lidar_beams": 8}

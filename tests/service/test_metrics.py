@@ -6,9 +6,9 @@ import httpx
 from fastapi.testclient import TestClient
 from prometheus_client.parser import text_string_to_metric_families
 
-from service.api.main import create_app
-from service.jobs.sqlite_store import SQLiteJobStore
-from service.settings import Settings
+from quicknav_service.api.main import create_app
+from quicknav_service.jobs.sqlite_store import SQLiteJobStore
+from quicknav_service.settings import Settings
 from tests.service.conftest import free_port, quicknav_process, wait_until_up
 
 
@@ -92,3 +92,12 @@ def test_metrics__summed_over_several_api_processes(tmp_path):
     finally:
         proc.terminate()
         proc.wait(30)
+
+
+def test_metrics__head_answers_like_get_without_a_body(tmp_path):
+    """Uptime probes check the page with HEAD: 200 and the GET's content type, no body."""
+    settings = Settings(_env_file=None, data_dir=tmp_path)
+    client = TestClient(create_app(settings, SQLiteJobStore(tmp_path / "jobs.db"), start_workers=False))
+    head, get = client.head("/metrics"), client.get("/metrics")
+    assert head.status_code == get.status_code == 200
+    assert head.headers["content-type"] == get.headers["content-type"] and head.content == b""

@@ -16,6 +16,7 @@ from typer.testing import CliRunner
 
 from quicknav_cli.main import app
 from quicknav_core.config import get_preset, resolve_sweep
+from quicknav_core.config.train import with_trainer_defaults
 from tests.service.conftest import LiveServer
 
 runner = CliRunner()
@@ -31,7 +32,7 @@ def local(*args: str) -> dict:
     """A config as the CLI resolves it (``--print-config``)."""
     result = runner.invoke(app, [*args, "--print-config"])
     assert result.exit_code == 0, result.output
-    return json.loads(result.output)
+    return json.loads(result.stdout)  # warnings (a deprecated flag) go to stderr
 
 
 def rest(live, kind: str, body: dict) -> dict:
@@ -75,7 +76,7 @@ def test_train__preset_with_overrides(live):
     assert_same(flags, body, client, submitted)
     assert flags["env"]["grid_size"] == 8 and flags["algorithm"]["learning_rate"] == 0.002
     assert flags["total_steps"] == 200000 and flags["seed"] == 3
-    assert flags["network"] == get_preset("demo").network.model_dump(mode="json")
+    assert flags["network"] == with_trainer_defaults(get_preset("demo")).network.model_dump(mode="json")
 
 
 def test_train__custom_config_file_with_overrides(live, tmp_path):
@@ -107,6 +108,8 @@ def test_sweep__builtin_space_with_overrides(live):
                          "--set", "eval_episodes=10")  # fmt: skip
     old_flag = local("sweep", "--preset", "lstm", "--trials", "4", "--total-steps", "262144",
                      "--set", "env.grid_size=8", "--set", "eval_episodes=10")  # fmt: skip
+    said = runner.invoke(app, ["sweep", "--preset", "lstm", "--print-config"])
+    assert "--preset is deprecated for sweeps: write --space lstm" in said.stderr
     assert_same(flags, body, client, submitted, old_flag)
     assert flags["base"]["total_steps"] == 262144 and flags["base"]["env"]["grid_size"] == 8
     assert flags["trials"] == 4 and flags["eval_episodes"] == 10 and flags["study_name"] == "lstm"

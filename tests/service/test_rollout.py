@@ -10,12 +10,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from quicknav_client.proto.quicknav.v1 import rollout_pb2 as pb
 from quicknav_client.rollout import RolloutClient, RolloutError
+from quicknav_client.tensors import encode
 
 from quicknav_core.config import EnvConfig
 from quicknav_core.env.batch import env_and_params, step_keys
-from service.rollout.server import BackgroundServer
-from service.settings import Settings
+from quicknav_service.rollout.server import BackgroundServer
+from quicknav_service.settings import Settings
 
 CONFIG = {"grid_size": 8, "train_rooms": 16, "test_rooms": 8, "lidar_beams": 8, "max_steps": 12}
 N = 4
@@ -186,6 +188,7 @@ def test_rollout__policy_job_that_does_not_exist_is_not_found(server):
     rc.start(num_envs=2, config=CONFIG, policy_job="no-such-job")
     code, msg = _code(lambda: list(rc.policy_frames()))
     assert code == grpc.StatusCode.NOT_FOUND and "no-such-job" in msg
+    assert "/" not in msg  # no server path in what a client reads
 
 
 def test_rollout__session_limit_is_resource_exhausted(server):
@@ -275,3 +278,108 @@ def test_rollout__policy_mode_streams_a_trained_jobs_episodes(server):
     for f in frames:
         rc_ = np.floor(f.poses[:, 1::-1] / cell).astype(int)
         assert not first.walls[np.arange(3), rc_[:, 0], rc_[:, 1]].any()
+    # the Start's fields apply to the env the policy trained in (once validated and then
+    # dropped): episodes cut at max_steps=5, in that env's 8x8 rooms
+    rc = RolloutClient(_target(server))
+    rc.start(num_envs=2, seed=2, split="test", policy_job="job-policy", config={"max_steps": 5})
+    frames = list(rc.policy_frames())
+    assert len(frames) - 1 <= 5 and frames[0].walls.shape == (2, 8, 8)
+    # a field that changes what the policy reads is refused, naming it
+    rc = RolloutClient(_target(server))
+    rc.start(num_envs=2, policy_job="job-policy", config={"lidar_beams": 8})
+    code, msg = _code(lambda: list(rc.policy_frames()))
+    assert code == grpc.StatusCode.INVALID_ARGUMENT and "lidar_beams=16" in msg, msg
+
+
+# --------------------------------------------------------------------------- asynchronous mode
+def test_rollout__async_groups_each_step_as_their_own_lock_step_session(server):
+    """groups=2: each group of N envs is exactly a lock-step session of N envs with its group's
+    seed, whatever order the groups are sent and come back in; totals count every group."""
+    from quicknav_service.rollout.servicer import group_seed
+
+    rng = np.random.default_rng(3)
+    plans = [[_actions(rng) for _ in range(14)] for _ in range(2)]
+    refs = [_reference(group_seed(7, g), N, plans[g]) for g in range(2)]
+    got: list[list] = [[], []]
+    with RolloutClient(_target(server)) as rc:
+        started = rc.start(num_envs=2 * N, seed=7, config=CONFIG, groups=2)
+        assert started.groups == 2 and started.observations.shape[0] == 2 * N
+        for g in range(2):
+            close(rc.group_observations(started.observations, g), refs[g][0])
+        rc.send(plans[1][0], group=1)  # group 1 first, then group 0
+        rc.send(plans[0][0], group=0)
+        sent = [1, 1]
+        while len(got[0]) + len(got[1]) < 28:
+            t = rc.recv()
+            got[t.group].append(t)
+            assert t.step_count == len(got[t.group]) and t.observations.shape[0] == N
+            if sent[t.group] < 14:
+                rc.send(plans[t.group][sent[t.group]], group=t.group)
+                sent[t.group] += 1
+            if t.group == 0 and len(got[0]) % 3 == 0:
+                time.sleep(0.01)  # the agent is slow on group 0 now and then: group 1 runs ahead
+        closed = rc.close()
+    for g in range(2):
+        for t, (obs, reward, term, trunc, final) in zip(got[g], refs[g][1:], strict=True):
+            close(t.observations, obs)
+            close(t.rewards, reward)
+            np.testing.assert_array_equal(t.terminated, term)
+            np.testing.assert_array_equal(t.done_indices, np.flatnonzero(term | trunc))
+            close(t.final_observations, final[term | trunc])
+    ended = sum(t.done_indices.size for g in range(2) for t in got[g])
+    assert closed.steps == 28 and closed.env_steps == 28 * N and closed.episodes == ended
+
+
+def test_rollout__async_refusals_name_the_group(server):
+    code, msg = _code(lambda: RolloutClient(_target(server)).start(num_envs=6, config=CONFIG,
+                                                                    groups=4))  # fmt: skip
+    assert code == grpc.StatusCode.INVALID_ARGUMENT and "start.groups=4" in msg
+    rc = RolloutClient(_target(server))
+    rc.start(num_envs=4, config=CONFIG, groups=2)
+    rc.send(np.zeros((2, 2), np.float32), group=0)
+    # a second Step for the same group before its Transition (past the client's own check)
+    rc._outbox.put(pb.AgentMessage(step=pb.Step(actions=encode(np.zeros((2, 2), np.float32)),
+                                                group=0)))  # fmt: skip
+    code, msg = _code(lambda: [rc.recv(), rc.recv()])
+    assert code == grpc.StatusCode.FAILED_PRECONDITION and "step.group=0" in msg, msg
+    rc = RolloutClient(_target(server))
+    rc.start(num_envs=4, config=CONFIG, groups=2)
+    rc.send(np.zeros((2, 2), np.float32), group=2)
+    code, msg = _code(rc.recv)
+    assert code == grpc.StatusCode.INVALID_ARGUMENT and "allowed range 0..1" in msg
+    rc = RolloutClient(_target(server))
+    rc.start(num_envs=4, config=CONFIG)
+    rc._outbox.put(pb.AgentMessage(step=pb.Step(actions=encode(np.zeros((4, 2), np.float32)),
+                                                group=1)))  # fmt: skip
+    code, msg = _code(rc._next)
+    assert code == grpc.StatusCode.INVALID_ARGUMENT and "lock-step" in msg
+
+
+def test_rollout__async_reset_with_a_seed_repeats_every_group(server):
+    with RolloutClient(_target(server)) as rc:
+        first = rc.start(num_envs=2 * N, seed=5, config=CONFIG, groups=2).observations
+        rc.send(_actions(np.random.default_rng(2)), group=1)
+        with pytest.raises(RuntimeError, match="in flight"):
+            rc.reset(seed=5)
+        rc.recv()
+        np.testing.assert_array_equal(rc.reset(seed=5), first)
+
+
+def test_gym__remote_vector_env_async_send_recv(server):
+    """EnvPool's interface on the gymnasium adapter: recv the ready group, send its actions."""
+    from quicknav_client.gym import RemoteVectorEnv
+
+    env = RemoteVectorEnv(_target(server), num_envs=2 * N, config=CONFIG, seed=4, groups=2)
+    env.async_reset()
+    seen = {0: 0, 1: 0}
+    for _ in range(12):
+        obs, rew, term, trunc, info = env.recv()
+        ids = info["env_id"]
+        assert obs.shape == (N, env.single_observation_space.shape[0]) and rew.shape == (N,)
+        assert ids.tolist() in (list(range(N)), list(range(N, 2 * N)))
+        seen[int(ids[0]) // N] += 1
+        env.send(np.zeros((N, 2), np.float32), ids)
+    assert seen[0] >= 3 and seen[1] >= 3
+    with pytest.raises(ValueError, match="one group's ids"):
+        env.send(np.zeros((N, 2), np.float32), np.arange(1, N + 1))
+    env.close()

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 from pydantic import ValidationError
 
-from service.settings import Settings
+from quicknav_service.settings import Settings
 
 
 def test_settings__empty_variable_means_unset(monkeypatch):

@@ -6,9 +6,9 @@ import uuid
 import pytest
 import redis
 
-from service.jobs.models import IdempotencyConflict, JobNotFound, JobStateError, JobStatus
-from service.jobs.redis_store import RedisJobStore
-from service.jobs.sqlite_store import SQLiteJobStore
+from quicknav_service.jobs.models import IdempotencyConflict, JobNotFound, JobStateError, JobStatus
+from quicknav_service.jobs.redis_store import RedisJobStore
+from quicknav_service.jobs.sqlite_store import SQLiteJobStore
 
 REDIS_URL = "redis://127.0.0.1:6379/14"  # this suite's own DB index
 
@@ -173,3 +173,14 @@ def test_rollout_endpoints_expire_unless_renewed(store):
     assert [e["worker"] for e in store.endpoints()] == ["w2"]
     store.unregister_endpoint("w2")
     assert store.endpoints() == []
+
+
+def test_browser_sessions_are_kept_until_they_expire_or_are_closed(store):
+    assert store.session_proof("k1") is None
+    store.create_session("k1", "proof-1", ttl_s=60)
+    store.create_session("k2", "proof-2", ttl_s=0.3)
+    assert store.session_proof("k1") == "proof-1" and store.session_proof("k2") == "proof-2"
+    time.sleep(0.5)
+    assert store.session_proof("k2") is None  # expired
+    store.delete_session("k1")
+    assert store.session_proof("k1") is None  # signed out

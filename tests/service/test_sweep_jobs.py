@@ -14,11 +14,11 @@ import redis
 
 from quicknav_core.config import SweepConfig
 from quicknav_core.sweep import finished_count, open_study
-from service.jobs.models import JobKind, JobStatus
-from service.jobs.redis_store import RedisJobStore
-from service.jobs.sqlite_store import SQLiteJobStore
-from service.settings import Settings
-from service.worker import Worker
+from quicknav_service.jobs.models import JobKind, JobStatus
+from quicknav_service.jobs.redis_store import RedisJobStore
+from quicknav_service.jobs.sqlite_store import SQLiteJobStore
+from quicknav_service.settings import Settings
+from quicknav_service.worker import Worker
 from tests.core.test_sweep import BASE, SPACE
 
 REDIS_URL = "redis://127.0.0.1:6379/12"  # this file's own DB index
@@ -68,7 +68,7 @@ def test_sweep_job__trial_batches_are_child_jobs_telling_one_study(tmp_path):
     # deleting the sweep deletes its batches too
     from fastapi.testclient import TestClient
 
-    from service.api.main import create_app
+    from quicknav_service.api.main import create_app
 
     client = TestClient(create_app(settings, store, start_workers=False))
     assert client.delete(f"/jobs/{sweep.id}").status_code == 204

@@ -8,10 +8,10 @@ import re
 import pytest
 from fastapi.testclient import TestClient
 
-from service.api.deps import SESSION_COOKIE, WEB_HEADER
-from service.api.main import create_app
-from service.jobs.models import JobKind
-from service.settings import Settings
+from quicknav_service.api.deps import SESSION_COOKIE, WEB_HEADER
+from quicknav_service.api.main import create_app
+from quicknav_service.jobs.models import JobKind
+from quicknav_service.settings import Settings
 
 TOKEN = "web-test-token-1"
 
@@ -82,7 +82,7 @@ def test_web__session_cookie_reads_jobs_and_artifacts_only_with_the_right_token(
     assert client.get("/auth/session").json()["authenticated"] is True
 
     # a change made with the cookie alone needs the page's header (a cross-site form cannot set it)
-    bare = client.post(f"/jobs/{job.id}/cancel")
+    bare = client.post(f"/jobs/{job.id}/cancel", json={})
     assert bare.status_code == 403 and WEB_HEADER in bare.json()["detail"]
     assert store.get(job.id).status.value == "queued"
     done = client.post(f"/jobs/{job.id}/cancel", headers={WEB_HEADER: "1"})

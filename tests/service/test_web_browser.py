@@ -1,7 +1,9 @@
 """The browser view in a real browser: headless Chromium (Debian's `chromium` package, driven by
-Playwright) against a live `quicknav serve` with a token set. It signs in, submits a demo job
-through the form, watches the curve grow and the job succeed, replays the policy, sees a validation
-error next to its field, follows a sweep, and cancels and deletes from the jobs page.
+Playwright) against a live `quicknav serve` with a token set. It signs in, sees every validation
+error of a form at once, submits the demo preset through the form, watches the curve grow and the
+job succeed, and from that job's page runs an eval, reads its metrics table (held-out success
+>= 0.9: a policy that learned) and plays its replay; it follows a sweep, sees a failed job's reason,
+and cancels and deletes from the jobs page. One demo job is trained per module and shared.
 
 Screenshots go to $QUICKNAV_SCREENSHOTS (or a pytest temporary folder); the test prints where.
 Never skipped: without Chromium it fails and says how to install it."""
@@ -33,11 +35,15 @@ def chromium_path() -> str:
 
 
 @pytest.fixture(scope="module")
-def server(tmp_path_factory):
-    data = tmp_path_factory.mktemp("web-data")
+def data_dir(tmp_path_factory):
+    return tmp_path_factory.mktemp("web-data")
+
+
+@pytest.fixture(scope="module")
+def server(data_dir):
     port = free_port()
-    proc = quicknav_process(["serve", "--port", str(port), "--no-grpc"], QUICKNAV_DATA_DIR=str(data),
-                            QUICKNAV_API_TOKEN=TOKEN)  # fmt: skip
+    proc = quicknav_process(["serve", "--port", str(port), "--no-grpc"],
+                            QUICKNAV_DATA_DIR=str(data_dir), QUICKNAV_API_TOKEN=TOKEN)  # fmt: skip
     url = f"http://127.0.0.1:{port}"
     try:
         wait_until_up(url, proc)
@@ -56,6 +62,30 @@ def shots(tmp_path_factory):
     folder.mkdir(parents=True, exist_ok=True)
     print(f"\nscreenshots: {folder}")
     return folder
+
+
+@pytest.fixture(scope="module")
+def demo(server):
+    """The module's one trained demo job: the form test trains it; a test run alone trains it here."""
+    return {}
+
+
+def wait_for_job(server: str, job_id: str, timeout_s: float = JOB_TIMEOUT_MS / 1000) -> dict:
+    deadline = time.time() + timeout_s
+    while True:
+        job = httpx.get(f"{server}/jobs/{job_id}", headers=AUTH).json()
+        if job["status"] in ("succeeded", "failed", "cancelled") or time.time() > deadline:
+            return job
+        time.sleep(1)
+
+
+def trained_demo(server: str, demo: dict) -> str:
+    """The id of the succeeded demo train job (the preset as it is: a policy that learns)."""
+    if "id" not in demo:
+        job = httpx.post(server + "/jobs/train", headers=AUTH, json={"preset": "demo"}).json()
+        assert wait_for_job(server, job["id"])["status"] == "succeeded"
+        demo["id"] = job["id"]
+    return demo["id"]
 
 
 @pytest.fixture(scope="module")
@@ -98,7 +128,6 @@ def test_browser__form_shows_the_servers_error_next_to_the_field(server, page, s
     field.locator(".field-error").wait_for()
     assert "128" in field.locator(".field-error").inner_text()  # the allowed range, from the server
     assert "invalid" in field.get_attribute("class")
-    page.screenshot(path=shots / "form-error.png", full_page=True)
     # an unknown key in the free-form box is reported there
     page.fill("#f-env\\.grid_size", "")
     page.fill("#f-overrides", "env.no_such_field=3")
@@ -107,22 +136,47 @@ def test_browser__form_shows_the_servers_error_next_to_the_field(server, page, s
     box.wait_for()
     assert "no_such_field" in box.inner_text()
     assert page.url.endswith("/ui/submit")  # nothing was submitted
+
+
+def test_browser__form_shows_every_field_error_at_once(server, page, shots):
+    page.goto(server + "/ui/submit")
+    page.wait_for_selector("#submit-form")
+    page.fill("#f-env\\.grid_size", "1000")
+    page.fill("#f-total_steps", "-5")
+    page.fill("#f-overrides", "env.no_such_field=3\nalgorithm.learning_rate 0.1\nseed")
+    page.click("#submit")
+    # two lines without '=' are caught in the page, both at once, and nothing is sent
+    box = page.locator('.field[data-key="overrides"] .field-error')
+    box.wait_for()
+    assert "line 2" in box.inner_text() and "line 3" in box.inner_text()
+    assert "key=value" in box.inner_text()
+    page.fill("#f-overrides", "env.no_such_field=3")
+    page.click("#submit")
+    page.locator('.field[data-key="total_steps"] .field-error').wait_for()
+    errors = {key: page.locator(f'.field[data-key="{key}"] .field-error').inner_text()
+              for key in ("env.grid_size", "total_steps", "overrides")}  # fmt: skip
+    page.screenshot(path=shots / "form-errors.png", full_page=True)
+    assert "128" in errors["env.grid_size"], errors  # each with its allowed range
+    assert "1" in errors["total_steps"] and "greater" in errors["total_steps"], errors
+    assert "no_such_field" in errors["overrides"], errors
+    assert page.url.endswith("/ui/submit")
     jobs = httpx.get(server + "/jobs", headers=AUTH).json()
     assert jobs["count"] == 0
 
 
-def test_browser__submitted_job_grows_its_curve_and_succeeds(server, page, shots):
+def test_browser__submitted_job_grows_its_curve_and_succeeds(server, page, shots, demo):
     page.goto(server + "/ui/submit")
     page.wait_for_selector("#submit-form")
     page.select_option("#preset", "demo")
-    page.fill("#f-total_steps", "800000")
+    demo_steps = httpx.get(server + "/presets", headers=AUTH).json()["demo"]["resolved"]["total_steps"]
+    page.fill("#f-total_steps", str(demo_steps))  # the preset's own budget: a policy that learns
     page.fill("#f-env\\.grid_size", "")
-    page.fill("#f-overrides", "chunk_steps=16384")
+    page.fill("#f-overrides", "chunk_steps=65536")
     page.click("#submit")
     page.wait_for_url("**/ui/jobs/*", timeout=20_000)
     job_id = page.url.rsplit("/", 1)[-1]
     job = httpx.get(f"{server}/jobs/{job_id}", headers=AUTH).json()
-    assert job["config"]["total_steps"] == 800000 and job["config"]["chunk_steps"] == 16384
+    assert job["config"]["total_steps"] == demo_steps and job["config"]["chunk_steps"] == 65536
 
     # watch the curve while the job runs: the number of points it draws, as the page says
     seen: list[tuple[str, int]] = []
@@ -148,12 +202,16 @@ def test_browser__submitted_job_grows_its_curve_and_succeeds(server, page, shots
         "document.querySelector('#images img[alt=\"learning_curve.png\"]').naturalWidth > 100"
     )
     page.locator("#events").get_by_text("succeeded").first.wait_for()
+    # long event lines (the result with its note) wrap inside the log instead of running past it
+    widths = page.eval_on_selector("#events", "e => [e.scrollWidth, e.clientWidth]")
+    assert widths[0] <= widths[1], widths
     page.screenshot(path=shots / "job-succeeded.png", full_page=True)
-    page.job_id = job_id
+    demo["id"] = job_id
 
 
-def test_browser__replay_of_the_trained_policy_advances_frames(server, page, shots):
-    page.goto(f"{server}/ui/jobs/{page.job_id}")
+def test_browser__replay_of_the_trained_policy_advances_frames(server, page, shots, demo):
+    job_id = trained_demo(server, demo)
+    page.goto(f"{server}/ui/jobs/{job_id}")
     page.click("#replay-link")
     page.wait_for_selector("#new-replay")
     page.click("#new-replay")
@@ -172,8 +230,96 @@ def test_browser__replay_of_the_trained_policy_advances_frames(server, page, sho
     assert int(canvas.get_attribute("data-step")) == 5 and "step 5 /" in page.inner_text("#step-label")
     # the episodes come from the eval job the page started, on the held-out bank
     evals = httpx.get(server + "/jobs?kind=eval", headers=AUTH).json()["data"]
-    assert [e["config"]["source"] for e in evals] == [page.job_id]
+    assert [e["config"]["source"] for e in evals] == [job_id]
     assert evals[0]["config"]["split"] == "test" and evals[0]["status"] == "succeeded"
+    # the replay page is Replay in the navigation, and only it
+    assert page.locator("header nav a.active").all_inner_texts() == ["Replay"]
+
+
+def success_in_table(page) -> float:
+    """The success rate the eval page's metrics table shows, as a fraction."""
+    row = page.locator("#eval-metrics tr", has_text="Success rate").locator("td").inner_text()
+    return float(row.split("%")[0]) / 100
+
+
+def test_browser__journey_from_the_trained_job_runs_an_eval_reads_its_metrics_and_replays(
+    server, page, shots, demo, data_dir
+):
+    job_id = trained_demo(server, demo)
+    page.goto(f"{server}/ui/jobs/{job_id}")
+    page.wait_for_selector("#run-eval")
+    assert page.locator("header nav a.active").all_inner_texts() == ["Jobs"]
+    # the replay test's eval is already listed, linked to its page
+    first_eval = page.locator("#evals tbody tr[data-id]").first
+    first_eval.wait_for()
+    earlier = first_eval.get_attribute("data-id")
+    assert first_eval.locator("a").get_attribute("href") == f"/ui/jobs/{earlier}"
+    page.fill("#eval-episodes", "100")
+    page.click("#run-eval")
+    page.wait_for_url(lambda url: "/ui/jobs/" in url and job_id not in url, timeout=20_000)
+    eval_id = page.url.rsplit("/", 1)[-1]
+    page.wait_for_selector('#job-head .badge[data-status="succeeded"]', timeout=JOB_TIMEOUT_MS)
+    page.wait_for_selector("#eval-metrics")
+    job = httpx.get(f"{server}/jobs/{eval_id}", headers=AUTH).json()
+    assert job["config"]["source"] == job_id and job["config"]["episodes"] == 100
+    assert job["warnings"] == [], job["warnings"]  # every picture rendered
+    assert page.locator("#job-warnings").count() == 0
+    shown = success_in_table(page)
+    assert shown == pytest.approx(job["result"]["metrics"]["success_rate"], abs=0.0005)
+    assert shown >= 0.9, f"the demo policy did not learn: held-out success {shown}"
+    assert page.get_attribute("#source-job", "href") == f"/ui/jobs/{job_id}"
+    page.locator('#images img[alt="trajectories.png"]').wait_for(timeout=20_000)
+    page.screenshot(path=shots / "eval.png", full_page=True)
+
+    page.click("#replay-link")
+    canvas = page.locator("#replay-canvas")
+    canvas.wait_for(timeout=20_000)
+    first = int(canvas.get_attribute("data-step"))
+    page.wait_for_timeout(800)
+    assert int(canvas.get_attribute("data-step")) != first, "the replay does not advance"
+    page.screenshot(path=shots / "eval-replay.png", full_page=True)
+
+    # the train job lists both evals, newest first, each linked
+    page.goto(f"{server}/ui/jobs/{job_id}")
+    page.wait_for_selector(f'#evals tr[data-id="{eval_id}"]')
+    assert page.locator("#evals tbody tr[data-id]").evaluate_all(
+        "rows => rows.map(r => r.dataset.id)") == [eval_id, earlier]  # fmt: skip
+    page.screenshot(path=shots / "job-evals.png", full_page=True)
+    # the train job's replay plays the newest eval that wrote a replay: this one, and the earlier
+    # one once this one's replay is gone
+    page.goto(f"{server}/ui/jobs/{job_id}/replay")
+    page.wait_for_selector("#replay-source")
+    assert page.get_attribute("#replay-source a", "href") == f"/ui/jobs/{eval_id}"
+    (data_dir / "artifacts" / eval_id / "replay.json").unlink()
+    page.goto(f"{server}/ui/jobs/{job_id}/replay")
+    page.wait_for_selector("#replay-source")
+    assert page.get_attribute("#replay-source a", "href") == f"/ui/jobs/{earlier}"
+
+
+def test_browser__nav_marks_only_the_current_page_and_never_api_docs(server, page):
+    for path, current in (("/", "Jobs"), ("/ui/submit", "New training job"), ("/ui/replay", "Replay")):
+        page.goto(server + path)
+        page.wait_for_selector("header nav a.active")
+        assert page.locator("header nav a.active").all_inner_texts() == [current], path
+        weights = page.locator("header nav a").evaluate_all(
+            "links => links.map(a => [a.textContent, getComputedStyle(a).fontWeight])")
+        assert dict(weights)["API docs"] == "400", weights
+        assert dict(weights)[current] == "600", weights
+
+
+def test_browser__compiling_phase_and_failed_reason_as_the_pages_show_them(server, page):
+    page.goto(server + "/")
+    page.wait_for_selector("#jobs")
+    shown = page.evaluate("""() => {
+        const t = Date.now() / 1000;
+        const job = (status, metrics, error) => ({ status, metrics, error, progress: 1, started_at: t - 20 });
+        return [jobProgress(job("running", { phase: "compiling", phase_since: t - 12 })).textContent,
+                jobProgress(job("running", { phase: "training" })).textContent,
+                jobProgress(job("failed", {}, "Traceback ...\\n  ...\\nValueError: bad")).textContent];
+    }""")  # fmt: skip
+    assert shown[0] == "compiling 12 s"
+    assert shown[1] == "100 %"
+    assert shown[2] == "ValueError: bad"  # the reason, not a full bar
 
 
 def test_browser__jobs_page_updates_live_cancels_deletes_and_shows_a_sweep(server, page, shots):
@@ -208,3 +354,30 @@ def test_browser__jobs_page_updates_live_cancels_deletes_and_shows_a_sweep(serve
     assert page.inner_text("#best-trial").startswith(f"Trial {best['number']}: success_rate")
     page.locator('#images img[alt="optimization_history.png"]').wait_for(timeout=20_000)
     page.screenshot(path=shots / "sweep.png", full_page=True)
+
+
+def test_browser__jobs_page_shows_a_failed_jobs_reason_not_a_full_bar(server, page, data_dir, shots):
+    from quicknav_service.jobs.models import JobKind
+    from quicknav_service.jobs.sqlite_store import SQLiteJobStore
+
+    # a stored config no TrainConfig accepts (the API would refuse it): the worker fails the job
+    store = SQLiteJobStore(data_dir / "jobs.db")
+    job, _ = store.submit(JobKind.train, {"preset": "demo"}, {"total_steps": "many"})
+    assert wait_for_job(server, job.id, 120)["status"] == "failed"
+    page.goto(server + "/")
+    row = page.locator(f'#jobs tr[data-id="{job.id}"][data-status="failed"]')
+    row.wait_for(timeout=10_000)
+    error = httpx.get(f"{server}/jobs/{job.id}", headers=AUTH).json()["error"]
+    shown = row.locator(".reason").inner_text()
+    assert shown and shown == error.strip().splitlines()[-1].strip()
+    assert row.locator(".bar").count() == 0 and "100 %" not in row.inner_text()
+    page.screenshot(path=shots / "jobs-failed.png", full_page=True)
+    # its page: the failed event carries the whole traceback on one line; it wraps inside the log
+    page.goto(f"{server}/ui/jobs/{job.id}")
+    failed_line = page.locator("#events div", has_text="failed")
+    failed_line.wait_for(timeout=10_000)
+    assert len(failed_line.inner_text()) > 300  # long enough to overflow if it did not wrap
+    widths = page.evaluate("""() => { const log = document.getElementById("events");
+        return [log.scrollWidth, log.clientWidth, document.documentElement.scrollWidth, innerWidth]; }""")
+    assert widths[0] <= widths[1] and widths[2] <= widths[3], f"the event log overflows: {widths}"
+    page.screenshot(path=shots / "job-failed-events.png", full_page=True)

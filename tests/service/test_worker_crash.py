@@ -15,8 +15,8 @@ import pytest
 import redis
 
 from quicknav_core.config import apply_overrides, get_preset
-from service.jobs.models import JobStatus
-from service.jobs.redis_store import RedisJobStore
+from quicknav_service.jobs.models import JobStatus
+from quicknav_service.jobs.redis_store import RedisJobStore
 
 REDIS_URL = "redis://127.0.0.1:6379/15"  # this test's own DB index
 

@@ -57,7 +57,7 @@ class AsyncJob(JobFields):
 
     async def cancel(self) -> AsyncJob:
         """Cancel: a queued job at once, a running one at its next chunk boundary."""
-        self._update(await self._client._json("POST", f"/jobs/{self.id}/cancel"))
+        self._update(await self._client._json("POST", f"/jobs/{self.id}/cancel", json={}))
         return self
 
     async def delete(self) -> None:
@@ -68,9 +68,11 @@ class AsyncJob(JobFields):
         """The job's files with their sizes."""
         return (await self._client._get_json(f"/jobs/{self.id}/artifacts"))["artifacts"]
 
-    async def download(self, name: str, path: str | Path | None = None) -> Path:
-        """Stream an artifact to ``path`` (a file or a folder; default: its name in the cwd)."""
-        return await self._client.download(self.id, name, path)
+    async def download(
+        self, name: str, out: str | Path | None = None, *, path: str | Path | None = None
+    ) -> Path:
+        """Stream an artifact to ``out`` (a file or a folder; default: its name in the cwd)."""
+        return await self._client.download(self.id, name, core.download_out(out, path))
 
 
 class _Done(Exception):
@@ -229,9 +231,10 @@ class AsyncQuickNavClient:
         total_steps: int | None = None,
         overrides: Mapping[str, Any] | None = None,
         idempotency_key: str | None = None,
+        space: str | None = None,
     ) -> AsyncJob:
-        """Submit a sweep job: a SweepConfig dict, or a built-in space name."""
-        body = core.sweep_body(config, trials, parallel, total_steps, overrides)
+        """Submit a sweep job: a built-in ``space`` (ppo, lstm, ...) or a SweepConfig ``config``."""
+        body = core.sweep_body(config, trials, parallel, total_steps, overrides, space)
         return await self._submit("/jobs/sweep", body, idempotency_key)
 
     async def evaluate(
@@ -246,7 +249,10 @@ class AsyncQuickNavClient:
         stochastic: bool | None = None,
         idempotency_key: str | None = None,
     ) -> AsyncJob:
-        """Submit an eval job: a train job's checkpoint, or a ``random``/``oracle`` baseline."""
+        """Submit an eval job: a train job's checkpoint, or a ``random``/``oracle`` baseline.
+
+        ``stochastic`` is the deprecated opposite of ``deterministic`` (the API's name).
+        """
         body = core.eval_body(job, policy, episodes, seed, env, split, deterministic, stochastic)
         return await self._submit("/jobs/eval", body, idempotency_key)
 
@@ -265,6 +271,10 @@ class AsyncQuickNavClient:
         """A job's events after event id ``after``, live, until the terminal one."""
         return self._iterate(core.events(self._policy, job_id, after, None))
 
-    async def download(self, job_id: str, name: str, path: str | Path | None = None) -> Path:
-        """Stream a job's artifact to a file (written whole or not at all); returns its path."""
-        return await self._run(core.download(self._policy, job_id, name, path))
+    async def download(
+        self, job_id: str, name: str, out: str | Path | None = None, *,
+        path: str | Path | None = None,
+    ) -> Path:
+        """Stream a job's artifact to ``out``, a file or a folder (default: its name in the cwd),
+        written whole or not at all; returns its path. ``path`` is the deprecated name of ``out``."""
+        return await self._run(core.download(self._policy, job_id, name, core.download_out(out, path)))

@@ -198,12 +198,18 @@ def sweep_body(
     parallel: int | None,
     total_steps: int | None,
     overrides: Mapping[str, Any] | None,
+    space: str | None = None,
 ) -> dict:
-    """The POST /jobs/sweep body: a built-in space name or a SweepConfig, with overrides (keys of
-    the SweepConfig or of its base TrainConfig)."""
-    if config is None:
-        raise ValueError("give a SweepConfig dict or a built-in space name (ppo, sac, td3, ...)")
-    body: dict[str, Any] = {"space": config} if isinstance(config, str) else {"config": _as_dict(config)}
+    """The POST /jobs/sweep body: a built-in ``space`` name or a SweepConfig, with overrides (keys
+    of the SweepConfig or of its base TrainConfig). A name passed as ``config`` is a space too."""
+    if isinstance(config, str):
+        if space is not None:
+            raise ValueError("give the space once: as `space` (its name), not also as `config`")
+        config, space = None, config
+    if (config is None) == (space is None):
+        raise ValueError("give exactly one of `space` (a built-in space name: ppo, sac, td3, ...)"
+                         " or `config` (a SweepConfig dict)")  # fmt: skip
+    body: dict[str, Any] = {"space": space} if space is not None else {"config": _as_dict(config)}
     for key, value in (("trials", trials), ("parallel", parallel), ("total_steps", total_steps)):
         if value is not None:
             body[key] = value
@@ -236,6 +242,17 @@ def eval_body(
     if env:
         body["env"] = dict(env)
     return body
+
+
+def download_out(out: str | Path | None, path: str | Path | None) -> str | Path | None:
+    """The destination of a download; ``path`` is the deprecated name of ``out`` (the CLI's --out)."""
+    if path is not None:
+        if out is not None:
+            raise ValueError("give the destination once, as `out` (`path` is its deprecated name)")
+        warnings.warn("download(path=...) is deprecated: pass out=... (as `quicknav jobs download"
+                      " --out`)", DeprecationWarning, stacklevel=3)  # fmt: skip
+        return path
+    return out
 
 
 def list_params(status: str | None, kind: str | None, limit: int, offset: int) -> dict:
@@ -353,6 +370,14 @@ class JobFields:
         self.request: dict[str, Any] = data.get("request") or {}
         self.config: dict[str, Any] = data.get("config") or {}
         self.links: dict[str, str] = data.get("links") or {}
+        # pictures that failed to render while the numbers were kept (older servers send none)
+        self.warnings: list[str] = list(data.get("warnings") or [])
+
+    @property
+    def phase(self) -> str | None:
+        """What a running job is doing: compiling, training or evaluating (None if not said)."""
+        phase = self.metrics.get("phase")
+        return phase if isinstance(phase, str) else None
 
     @property
     def done(self) -> bool:

@@ -55,7 +55,7 @@ class Job(JobFields):
 
     def cancel(self) -> Job:
         """Cancel: a queued job at once, a running one at its next chunk boundary."""
-        self._update(self._client._json("POST", f"/jobs/{self.id}/cancel"))
+        self._update(self._client._json("POST", f"/jobs/{self.id}/cancel", json={}))
         return self
 
     def delete(self) -> None:
@@ -66,9 +66,11 @@ class Job(JobFields):
         """The job's files: ``[{"name": "checkpoint/state.msgpack", "bytes": 1234}, ...]``."""
         return self._client._get_json(f"/jobs/{self.id}/artifacts")["artifacts"]
 
-    def download(self, name: str, path: str | Path | None = None) -> Path:
-        """Stream an artifact to ``path`` (a file or a folder; default: its name in the cwd)."""
-        return self._client.download(self.id, name, path)
+    def download(
+        self, name: str, out: str | Path | None = None, *, path: str | Path | None = None
+    ) -> Path:
+        """Stream an artifact to ``out`` (a file or a folder; default: its name in the cwd)."""
+        return self._client.download(self.id, name, core.download_out(out, path))
 
 
 class QuickNavClient:
@@ -216,9 +218,10 @@ class QuickNavClient:
         total_steps: int | None = None,
         overrides: Mapping[str, Any] | None = None,
         idempotency_key: str | None = None,
+        space: str | None = None,
     ) -> Job:
-        """Submit a sweep job: a SweepConfig dict, or a built-in space name (ppo, lstm, ...)."""
-        body = core.sweep_body(config, trials, parallel, total_steps, overrides)
+        """Submit a sweep job: a built-in ``space`` (ppo, lstm, ...) or a SweepConfig ``config``."""
+        body = core.sweep_body(config, trials, parallel, total_steps, overrides, space)
         return self._submit("/jobs/sweep", body, idempotency_key)
 
     def evaluate(
@@ -256,6 +259,10 @@ class QuickNavClient:
         """A job's events after event id ``after``, live, until the terminal one."""
         return self._steps(core.events(self._policy, job_id, after, None))
 
-    def download(self, job_id: str, name: str, path: str | Path | None = None) -> Path:
-        """Stream a job's artifact to a file (written whole or not at all); returns its path."""
-        return self._run(core.download(self._policy, job_id, name, path))
+    def download(
+        self, job_id: str, name: str, out: str | Path | None = None, *,
+        path: str | Path | None = None,
+    ) -> Path:
+        """Stream a job's artifact to ``out``, a file or a folder (default: its name in the cwd),
+        written whole or not at all; returns its path. ``path`` is the deprecated name of ``out``."""
+        return self._run(core.download(self._policy, job_id, name, core.download_out(out, path)))

@@ -1,0 +1,109 @@
+"""Admission against reality: a job's estimated peak memory (``train.memory``, what the service
+admits jobs by) beside the peak RSS of a process that runs it as a worker does (build, compile,
+train a few chunks, write checkpoints), for every network kind and algorithm at two sizes.
+
+    uv run python -m quicknav_core.bench.memory [--out benchmarks/results/memory.json]
+
+Each case runs in a fresh process (``peak_rss`` reads its ``ru_maxrss``); ``tests/core/
+test_memory_admission.py`` (slow) holds every case to within 10 % and README quotes the table.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+MB = 2**20
+
+# (case, preset, overrides): every algorithm and network kind, a small and a large size each
+CASES: tuple[tuple[str, str, dict[str, Any]], ...] = (
+    ("ppo-mlp-256", "paper-ppo", {"num_envs": 256, "algorithm.num_steps": 64}),
+    ("ppo-mlp-2048", "paper-ppo", {"num_envs": 2048, "algorithm.num_steps": 64}),
+    ("sac-100k", "paper-sac", {"algorithm.buffer_size": 100_000}),
+    ("sac-1m", "paper-sac", {"algorithm.buffer_size": 1_000_000}),
+    ("td3-50k", "paper-td3", {"algorithm.buffer_size": 50_000}),
+    ("td3-1m", "paper-td3", {"algorithm.buffer_size": 1_000_000}),
+    ("mlp-memory-256", "paper-mlp", {"num_envs": 256}),
+    ("mlp-memory-1024", "paper-mlp", {"num_envs": 1024}),
+    ("lstm-256", "paper-lstm", {"num_envs": 256}),
+    ("lstm-1024", "paper-lstm", {"num_envs": 1024}),
+    ("gtrxl-512", "paper-gtrxl", {"num_envs": 512}),
+    ("gtrxl-2048", "paper-gtrxl", {"num_envs": 2048}),
+)
+
+_CHILD = """
+import json, resource, sys, tempfile
+from quicknav_core.config import resolve_train
+from quicknav_core.train.run import train_run
+request = json.loads(sys.argv[1])
+cfg = resolve_train(request)
+with tempfile.TemporaryDirectory() as run_dir:
+    train_run(cfg, run_dir)
+print(json.dumps({"peak_rss": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024}))
+"""
+
+
+def case_request(preset: str, overrides: dict[str, Any]) -> dict[str, Any]:
+    """The train request of a case: a few chunks of its config, a checkpoint after each."""
+    from quicknav_core.config import resolve_train
+
+    base = resolve_train({"preset": preset, "overrides": overrides})
+    per_update = base.steps_per_update
+    units = 3 if base.trainer_kind.startswith("rejax-") and preset != "paper-ppo" else 2
+    steps = max(per_update * 2, 4096 * units)
+    return {"preset": preset, "overrides": {**overrides, "total_steps": steps,
+                                             "chunk_steps": max(per_update, steps // 3)}}  # fmt: skip
+
+
+def peak_rss(request: dict[str, Any], env: dict[str, str] | None = None) -> int:
+    """Peak resident bytes of a fresh process that trains ``request`` into a temporary folder."""
+    done = subprocess.run([sys.executable, "-c", _CHILD, json.dumps(request)], capture_output=True,
+                          text=True, env=env, timeout=1800)  # fmt: skip
+    if done.returncode != 0:
+        raise RuntimeError(f"case failed:\n{done.stderr[-3000:]}")
+    return int(json.loads(done.stdout.strip().splitlines()[-1])["peak_rss"])
+
+
+def estimate(request: dict[str, Any]) -> int:
+    from quicknav_core.config import resolve_train
+    from quicknav_core.train.memory import train_memory
+
+    return train_memory(resolve_train(request)).total
+
+
+def run(cases=CASES) -> list[dict[str, Any]]:
+    rows = []
+    for name, preset, overrides in cases:
+        request = case_request(preset, overrides)
+        measured, est = peak_rss(request), estimate(request)
+        rows.append({"case": name, "preset": preset, "overrides": overrides,
+                     "estimate_mb": round(est / MB), "measured_mb": round(measured / MB),
+                     "ratio": round(est / measured, 3)})  # fmt: skip
+        print(f"{name:<16} estimate {est / MB:7.0f} MB  measured {measured / MB:7.0f} MB"
+              f"  ratio {est / measured:.2f}", flush=True)
+    return rows
+
+
+def main() -> None:
+    import argparse
+
+    from quicknav_core.bench.machine import machine_info
+
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--out", type=Path, default=Path("benchmarks/results/memory.json"))
+    ap.add_argument("--case", action="append", help="only these cases")
+    args = ap.parse_args()
+    chosen = [c for c in CASES if not args.case or c[0] in args.case]
+    rows = run(chosen)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps({"machine": machine_info(), "rows": rows}, indent=2))
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    with tempfile.TemporaryDirectory():
+        main()

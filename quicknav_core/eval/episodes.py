@@ -1,0 +1,196 @@
+"""Running held-out episodes: all at once, vmapped, one ``lax.scan`` over the step limit.
+
+Episode i starts from ``reset(fold_in(PRNGKey(seed), i))``, so two agents evaluated with the same
+seed and env config face exactly the same rooms, starts and goals; finished episodes are frozen.
+``replay_data`` turns the picture episodes into the browser replay's ``replay.json``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from quicknav_core.config import EnvConfig, EvalConfig
+from quicknav_core.config.eval import EVAL_BATCH
+from quicknav_core.eval.agents import Agent
+from quicknav_core.eval.planning import shortest_path_length
+
+__all__ = ["Episodes", "EvalStopped", "replay_data", "run_episodes"]
+
+
+@dataclass
+class Episodes:
+    """Per-episode outcomes (numpy) and what the pictures need."""
+
+    success: np.ndarray  # (N,) bool
+    truncated: np.ndarray  # (N,) bool
+    steps: np.ndarray  # (N,) int: steps taken (to the goal, or the limit)
+    returns: np.ndarray  # (N,) float
+    collisions: np.ndarray  # (N,) int
+    path_length: np.ndarray  # (N,) float metres driven
+    reference_length: np.ndarray  # (N,) float shortest path into the goal disc
+    trajectories: np.ndarray  # (N, T+1, 2) positions (frozen after the end)
+    walls: np.ndarray  # (N, g, g)
+    goals: np.ndarray  # (N, 2)
+    gif: dict[str, np.ndarray]  # first G episodes: theta, lidar ranges/hits per step
+
+
+_RUNNERS: dict[Any, Any] = {}
+
+
+class EvalStopped(Exception):
+    """``progress`` asked to stop between batches; ``done`` episodes of ``total`` had run."""
+
+    def __init__(self, done: int, total: int):
+        super().__init__(f"evaluation stopped after {done} of {total} episodes")
+        self.done = done
+        self.total = total
+
+
+def _runner(env, agent: Agent, batch: int, gif: int, deterministic: bool):
+    """The compiled evaluation of ``batch`` episodes: f(keys, act_keys, env_params, payload)."""
+    cache_key = (env, agent.static_key(), batch, gif, deterministic)
+    if cache_key in _RUNNERS:
+        return _RUNNERS[cache_key]
+    n, g = batch, gif
+
+    def run(keys, act_keys, params, payload):
+        obs, states = jax.vmap(env.reset, in_axes=(0, None))(keys, params)
+        ref = jax.vmap(
+            lambda rb, s, goal: shortest_path_length(
+                rb, s, goal, params.room_size, params.robot_radius, params.goal_radius
+            )
+        )(states.row_bits, states.pos, states.goal)
+        agent_state = agent.init(env, params, states, payload)
+        start = jnp.ones((n,), bool)
+        done = jnp.zeros((n,), bool)
+        zeros_i, zeros_f = jnp.zeros((n,), jnp.int32), jnp.zeros((n,), jnp.float32)
+        carry0 = (states, obs, agent_state, start, done, zeros_i, zeros_f, zeros_i, zeros_f,
+                  jnp.zeros((n,), bool), jnp.zeros((n,), bool))  # fmt: skip
+
+        def step(carry, key):
+            (states, obs, agent_state, start, done, steps, ret, coll, plen, success, trunc) = carry
+            agent_state, action = agent.act(
+                agent_state, obs, states, start, key, deterministic, payload
+            )
+            obs2, states2, reward, d, info = jax.vmap(env.step_env, in_axes=(0, 0, 0, None))(
+                keys, states, action, params
+            )
+            alive = ~done
+            keep = lambda new, old: jnp.where(  # noqa: E731
+                alive.reshape(alive.shape + (1,) * (new.ndim - 1)), new, old
+            )
+            states2 = jax.tree.map(keep, states2, states)
+            obs2 = keep(obs2, obs)
+            carry = (
+                states2, obs2, agent_state, jnp.zeros_like(start), done | (alive & d),
+                steps + alive, ret + jnp.where(alive, reward, 0.0),
+                coll + (alive & info["collision"]),
+                plen + jnp.where(alive, jnp.linalg.norm(states2.pos - states.pos, axis=-1), 0.0),
+                success | (alive & info["goal_reached"]), trunc | (alive & info["truncated"]),
+            )  # fmt: skip
+            rec = (states2.pos, states2.theta[:g], states2.lidar_ranges[:g], states2.lidar_hits[:g],
+                   action[:g])  # fmt: skip
+            return carry, rec
+
+        final, (pos, theta, ranges, hits, actions) = jax.lax.scan(step, carry0, act_keys)
+        _, _, _, _, _, steps, ret, coll, plen, success, trunc = final
+        first = (states.theta[:g], states.lidar_ranges[:g], states.lidar_hits[:g])
+        return (states.pos, states.walls, states.goal, ref, steps, ret, coll, plen, success,
+                trunc, pos, theta, ranges, hits, actions, first)  # fmt: skip
+
+    _RUNNERS[cache_key] = jax.jit(run)
+    return _RUNNERS[cache_key]
+
+
+def run_episodes(
+    env, params, agent: Agent, cfg: EvalConfig,
+    progress: Callable[[int, int], bool | None] | None = None,
+) -> Episodes:  # fmt: skip
+    """Run ``cfg.episodes`` fixed-seed episodes of ``agent``, ``EVAL_BATCH`` at a time.
+
+    Episode i starts from ``reset(fold_in(PRNGKey(seed), i))`` whatever the batch; a stochastic
+    agent's per-step keys are those of the one-batch evaluation in the first batch and fold in the
+    batch index after it. ``progress(done, total)`` is called after every batch and may return
+    True to stop (``EvalStopped``).
+    """
+    n = cfg.episodes
+    batch = min(n, EVAL_BATCH)
+    g_total = min(cfg.gif_episodes, n)
+    g = min(g_total, batch)
+    t_max = int(env.config.max_steps)
+    runner = _runner(env, agent, batch, g, cfg.deterministic)
+    base = jax.random.PRNGKey(cfg.seed)
+    act_base = jax.random.fold_in(base, 2**30)
+    parts: list[tuple] = []
+    for b in range(math.ceil(n / batch)):
+        index = jnp.arange(b * batch, (b + 1) * batch)
+        keys = jax.vmap(lambda i: jax.random.fold_in(base, i))(index)
+        act_keys = jax.random.split(act_base if b == 0 else jax.random.fold_in(act_base, b), t_max)
+        parts.append(jax.device_get(runner(keys, act_keys, params, agent.payload)))
+        done = min((b + 1) * batch, n)
+        if progress is not None and progress(done, n) and done < n:
+            raise EvalStopped(done, n)
+    start_pos, walls, goals, ref, steps, ret, coll, plen, success, trunc = (
+        np.concatenate([np.asarray(p[i]) for p in parts])[:n] for i in range(10)
+    )
+    pos = np.concatenate([np.asarray(p[10]) for p in parts], axis=1)[:, :n]  # (T, N, 2)
+    traj = np.concatenate([start_pos[None], pos], axis=0).swapaxes(0, 1)
+    # the pictures' episodes: the first g of each batch, as far as the first g_total episodes
+    # (with no picture episodes, the first batch's empty slices keep the shapes)
+    gif_parts = [p for b, p in enumerate(parts) if b * batch < g_total] or parts[:1]
+    take = lambda i, axis: np.concatenate([np.asarray(p[i]) for p in gif_parts], axis=axis)  # noqa: E731
+    first = [np.concatenate([np.asarray(p[15][k]) for p in gif_parts]) for k in range(3)]
+    gif = {
+        "theta": np.concatenate([first[0][None], take(11, 1)], axis=0).swapaxes(0, 1)[:g_total],
+        "lidar_ranges": np.concatenate([first[1][None], take(12, 1)], axis=0).swapaxes(0, 1)[:g_total],
+        "lidar_hits": np.concatenate([first[2][None], take(13, 1)], axis=0).swapaxes(0, 1)[:g_total],
+        # (G, T, 2): action t -> pose t+1
+        "actions": np.asarray(take(14, 1), np.float32).swapaxes(0, 1)[:g_total],
+    }
+    return Episodes(
+        success=success, truncated=trunc, steps=steps, returns=ret, collisions=coll,
+        path_length=plen, reference_length=ref, trajectories=traj, walls=walls, goals=goals,
+        gif=gif,
+    )  # fmt: skip
+
+
+def replay_data(ep: Episodes, config: EnvConfig, agent_name: str) -> dict[str, Any]:
+    """The picture episodes step by step, for the browser's replay (``replay.json``): walls as
+    rows of '#'/'.' (row = y), poses and lidar ranges rounded to millimetres, hit codes."""
+    from quicknav_core.env.constants import HIT_GOAL, HIT_NONE, HIT_WALL, beam_angles
+
+    episodes = []
+    for i in range(ep.gif["theta"].shape[0]):
+        n = int(ep.steps[i]) + 1  # the start pose and one pose per step taken
+        walls = ep.walls[i]
+        episodes.append({
+            "index": i,
+            "success": bool(ep.success[i]),
+            "steps": int(ep.steps[i]),
+            "return": round(float(ep.returns[i]), 4),
+            "walls": ["".join("#" if w else "." for w in row) for row in walls],
+            "goal": [round(float(v), 4) for v in ep.goals[i]],
+            "x": np.round(ep.trajectories[i, :n, 0], 3).tolist(),
+            "y": np.round(ep.trajectories[i, :n, 1], 3).tolist(),
+            "theta": np.round(ep.gif["theta"][i, :n], 4).tolist(),
+            "ranges": np.round(ep.gif["lidar_ranges"][i, :n], 3).tolist(),
+            "hits": ep.gif["lidar_hits"][i, :n].astype(int).tolist(),
+        })  # fmt: skip
+    return {
+        "agent": agent_name,
+        "room_size": config.room_size,
+        "grid_size": config.grid_size,
+        "robot_radius": config.robot_radius,
+        "goal_radius": config.goal_radius,
+        "dt": config.dt,
+        "beam_angles": np.round(beam_angles(config.lidar_beams, config.lidar_fov_deg), 5).tolist(),
+        "hit_codes": {"none": HIT_NONE, "wall": HIT_WALL, "goal": HIT_GOAL},
+        "episodes": episodes,
+    }

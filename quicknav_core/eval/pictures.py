@@ -1,0 +1,130 @@
+"""The pictures of an evaluation: trajectories.png, difficulty.png and episodes.gif.
+
+``draw_all`` draws each one on its own: a picture that fails to render is reported as a warning
+naming the file, and never costs the evaluation its numbers (eval.json is written before).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from quicknav_core.config import EnvConfig
+from quicknav_core.eval.episodes import Episodes
+
+__all__ = ["draw_all", "draw_difficulty", "draw_gif", "draw_trajectories", "picture_warning"]
+
+
+def picture_warning(name: str, error: BaseException) -> str:
+    """The warning a job shows when the picture ``name`` failed: the file and why."""
+    why = str(error).strip().splitlines()[0] if str(error).strip() else ""
+    return f"{name} was not drawn: {type(error).__name__}{': ' + why if why else ''}"
+
+
+def draw_all(
+    ep: Episodes, config: EnvConfig, rows: list[dict[str, Any]], out_dir: Path, title: str,
+    gif: bool = True,
+) -> list[str]:  # fmt: skip
+    """Draw every picture of an evaluation into ``out_dir``; the warnings of those that failed."""
+    import matplotlib.pyplot as plt
+
+    jobs = [("trajectories.png", lambda p: draw_trajectories(ep, config, p, title=title)),
+            ("difficulty.png", lambda p: draw_difficulty(rows, p, title=title))]  # fmt: skip
+    if gif and ep.gif["theta"].shape[0]:
+        jobs.append(("episodes.gif", lambda p: draw_gif(ep, config, p, title=title)))
+    warnings = []
+    for name, draw in jobs:
+        try:
+            draw(Path(out_dir) / name)
+        except Exception as e:  # a picture never fails the evaluation
+            plt.close("all")
+            (Path(out_dir) / name).unlink(missing_ok=True)  # no half-written file left behind
+            warnings.append(picture_warning(name, e))
+    return warnings
+
+
+def draw_difficulty(rows: list[dict[str, Any]], path: Path, title: str = "") -> Path:
+    """Success (with its 95 % interval) and SPL against the oracle's path length, per bin."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labels = [f"{r['path_m'][0]:g}-{r['path_m'][1]:g} m" if r["path_m"][1] is not None
+              else f">= {r['path_m'][0]:g} m" for r in rows]  # fmt: skip
+    x = np.arange(len(rows))
+    success = np.array([r["success_rate"] for r in rows])
+    ci = np.array([r["success_ci95"] for r in rows]).reshape(-1, 2)
+    fig, ax = plt.subplots(figsize=(7, 4))
+    # an interval always holds its point (statistics.wilson_interval); the clip only guards
+    # matplotlib, which refuses a negative error bar, against intervals read from older files
+    yerr = np.clip([success - ci[:, 0], ci[:, 1] - success], 0.0, None)
+    ax.errorbar(x, success, yerr=yerr, marker="o",
+                capsize=4, label="success rate (95 % CI)", color="tab:green")  # fmt: skip
+    ax.plot(x, [r["spl"] for r in rows], marker="s", label="SPL", color="tab:blue")
+    for xi, r in zip(x, rows, strict=True):
+        ax.annotate(f"n={r['episodes']}", (xi, 0.98), ha="center", va="top", fontsize=8, color="0.4")
+    ax.set_xticks(x, labels)
+    ax.set_ylim(0, 1.05)
+    ax.set_xlabel("oracle shortest path to the goal")
+    ax.set_title(f"{title}: by difficulty" if title else "by difficulty", fontsize=10)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="center right", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def draw_trajectories(ep: Episodes, config: EnvConfig, path: Path, title: str = "") -> Path:
+    """3x3 grid of episodes with their trajectories (the paper's trajectory figures)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from quicknav_core.env.render import GOAL_COLOUR, PATH_COLOUR, draw_room
+
+    count = min(9, ep.success.size)
+    fig, axes = plt.subplots(3, 3, figsize=(9, 9.4))
+    for i, ax in enumerate(axes.flat):
+        if i >= count:
+            ax.axis("off")
+            continue
+        draw_room(ax, ep.walls[i], config.room_size)
+        traj = ep.trajectories[i, : ep.steps[i] + 1]
+        ax.plot(traj[:, 0], traj[:, 1], color=PATH_COLOUR, lw=1.6)
+        ax.plot(*traj[0], "o", color=PATH_COLOUR, ms=6)
+        ax.add_patch(plt.Circle(ep.goals[i], config.goal_radius, color=GOAL_COLOUR, alpha=0.4))
+        ax.plot(*ep.goals[i], "*", color=GOAL_COLOUR, ms=12)
+        outcome = "reached" if ep.success[i] else "timed out"
+        ax.set_title(f"episode {i + 1}: {outcome}, {ep.steps[i]} steps", fontsize=9)
+    fig.suptitle(f"{title}: held-out test rooms", fontsize=11)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def draw_gif(
+    ep: Episodes, config: EnvConfig, path: Path, title: str = "", max_frames: int = 60
+) -> Path:
+    """A GIF of the first episodes with lidar rays, one after the other."""
+    from quicknav_core.env.render import render_frame, save_gif
+
+    frames = []
+    for i in range(ep.gif["theta"].shape[0]):
+        length = int(ep.steps[i]) + 1
+        stride = max(1, math.ceil(length / max_frames))
+        for t in [*range(0, length, stride), length - 1]:
+            snap = {
+                "walls": ep.walls[i], "pos": ep.trajectories[i, t], "theta": ep.gif["theta"][i, t],
+                "goal": ep.goals[i], "lidar_ranges": ep.gif["lidar_ranges"][i, t],
+                "lidar_hits": ep.gif["lidar_hits"][i, t],
+            }  # fmt: skip
+            frames.append(render_frame(snap, config, ep.trajectories[i, : t + 1],
+                                       title=f"{title} episode {i + 1}  t={t}", size_px=320))  # fmt: skip
+    return save_gif(frames, path, fps=10)

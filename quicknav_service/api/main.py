@@ -1,0 +1,103 @@
+"""The HTTP API's factory: it assembles the app (settings, store, middleware, error handlers,
+docs, routers) and starts in-process workers when asked; the rules live in the jobs service."""
+
+from __future__ import annotations
+
+from contextlib import asynccontextmanager
+
+import anyio
+from fastapi import APIRouter, FastAPI
+from fastapi.routing import APIRoute
+
+from quicknav_service.api import docs, errors, openapi
+from quicknav_service.api.metrics import RequestMetrics
+from quicknav_service.api.middleware import BodyLimit, CrossSiteGuard, TrustedHosts
+from quicknav_service.api.routes import artifacts, events, jobs, ops
+from quicknav_service.api.routes.events import StreamSlots
+from quicknav_service.auth import FailureLimiter
+from quicknav_service.jobs.models import JobStore
+from quicknav_service.settings import Settings, get_settings, make_store
+from quicknav_service.web import routes as web
+
+DESCRIPTION = "Submit train, sweep and eval jobs; follow their progress; fetch results."
+
+
+def operation_id(route: APIRoute) -> str:
+    """The operationId of a route: its handler's name (``submit_train_job``, ``list_jobs``)."""
+    return route.name
+
+
+def api_version() -> str:
+    """The package's version (one source: the installed distribution's metadata)."""
+    import quicknav_core
+
+    version = getattr(quicknav_core, "__version__", None)
+    if version:
+        return version
+    from importlib.metadata import PackageNotFoundError
+    from importlib.metadata import version as dist_version
+
+    try:
+        return dist_version("quicknav")
+    except PackageNotFoundError:
+        return "0+unknown"
+
+
+def create_app(
+    settings: Settings | None = None, store: JobStore | None = None, start_workers: bool | None = None
+) -> FastAPI:
+    """The API; with ``start_workers`` (default: settings.embedded_worker) in-process workers run too."""
+    settings = settings or get_settings()
+    store = store if store is not None else make_store(settings)
+    settings.artifacts_dir.mkdir(parents=True, exist_ok=True)
+    run_workers = settings.embedded_worker if start_workers is None else start_workers
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        app.state.workers = []
+        if run_workers:
+            # jobs run in supervised child processes: one that dies (out of memory) fails its
+            # job and is replaced, and the API lives on
+            from quicknav_service.supervisor import WorkerSupervisor
+
+            app.state.workers = WorkerSupervisor(settings, store, settings.max_concurrent_jobs).start()
+        yield
+        if app.state.workers:
+            await anyio.to_thread.run_sync(app.state.workers.stop)
+
+    app = FastAPI(title="QuickNav", version=api_version(), description=DESCRIPTION,
+                  lifespan=lifespan, docs_url=None, redoc_url=None,
+                  generate_unique_id_function=operation_id)  # fmt: skip
+    app.state.settings = settings
+    app.state.store = store
+    app.state.auth_limiter = FailureLimiter(settings.auth_failures_max, settings.auth_failure_window_s)
+    app.state.streams = StreamSlots(settings.sse_max_per_client, settings.sse_max_total)
+    app.state.workers = []
+    docs.install(app)
+    errors.install(app)
+    openapi.install(app)
+    app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
+    app.add_middleware(CrossSiteGuard, origins=settings.trusted_origins)
+    app.add_middleware(TrustedHosts, hosts=settings.trusted_hosts)
+    app.add_middleware(RequestMetrics)  # outermost: it sees every answer, refusals included
+
+    app.include_router(jobs.router)
+    app.include_router(events.router)
+    app.include_router(artifacts.router)
+    app.include_router(ops.router)
+    app.include_router(_documented(web.auth, {"POST": errors.responses(400, 401, 413, 422)}))
+    app.include_router(web.router)
+    return app
+
+
+def _documented(router: APIRouter, extra: dict[str, dict]) -> APIRouter:
+    """``router`` with error responses added to its routes by method (the browser view's session
+    routes: signing in checks a body and the token)."""
+    out = APIRouter()
+    for r in router.routes:
+        more = {code: doc for m in r.methods for code, doc in extra.get(m, {}).items()}
+        out.add_api_route(r.path, r.endpoint, methods=list(r.methods), name=r.name, tags=r.tags,
+                          response_model=r.response_model, status_code=r.status_code,
+                          description=r.description, responses={**r.responses, **more},
+                          response_class=r.response_class)  # fmt: skip
+    return out

@@ -1,0 +1,124 @@
+"""ASGI middleware of the API: body size, trusted hosts, cross-site requests. Pure ASGI (a
+BaseHTTPMiddleware costs a task per request)."""
+
+from __future__ import annotations
+
+from urllib.parse import urlsplit
+
+from fastapi import HTTPException
+from fastapi.responses import JSONResponse
+
+# what a page of another site can send without a CORS preflight (which this API never grants)
+SIMPLE_METHODS = ("GET", "HEAD", "POST")
+SAFE_METHODS = ("GET", "HEAD", "OPTIONS")
+WEB_HEADER = b"x-quicknav-web"
+
+
+def _header(scope, name: bytes) -> bytes | None:
+    for key, value in scope["headers"]:
+        if key == name:
+            return value
+    return None
+
+
+def host_name(host: str) -> str:
+    """The name part of a Host header or netloc: no port, IPv6 brackets removed, lower case."""
+    host = host.strip().lower()
+    if host.startswith("["):
+        return host[1:].split("]", 1)[0]
+    return host.rsplit(":", 1)[0] if host.count(":") == 1 else host
+
+
+class TrustedHosts:
+    """Answer only requests whose Host header names this server (DNS rebinding: a page on
+    another site that resolves its own name to 127.0.0.1 reaches the API under that name)."""
+
+    def __init__(self, app, hosts: list[str]):
+        self.app = app
+        self.hosts = set(hosts)
+        self.any = "*" in self.hosts
+
+    def allowed(self, host: str) -> bool:
+        name = host_name(host)
+        return self.any or name in self.hosts or any(
+            h.startswith("*.") and name.endswith(h[1:]) for h in self.hosts)  # fmt: skip
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] not in ("http", "websocket"):
+            return await self.app(scope, receive, send)
+        host = (_header(scope, b"host") or b"").decode("latin-1")
+        if not self.allowed(host):
+            response = JSONResponse({"detail": (
+                f"Host {host_name(host)!r} is not a name this server answers to; allowed:"
+                f" {', '.join(sorted(self.hosts))} (QUICKNAV_ALLOWED_HOSTS)")}, status_code=400)  # fmt: skip
+            return await response(scope, receive, send)
+        return await self.app(scope, receive, send)
+
+
+class CrossSiteGuard:
+    """Requests that change state must come from this server's own pages or a client that is not
+    a browser: where a browser says where a request comes from (``Origin``), it must be this
+    server (or QUICKNAV_ALLOWED_ORIGINS), and a POST must carry a JSON body or the web view's
+    header, which a form on another site cannot send without a preflight this API never grants
+    (methods other than GET, HEAD and POST always need one)."""
+
+    def __init__(self, app, origins: list[str]):
+        self.app = app
+        self.origins = set(origins)
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http" or scope["method"] in SAFE_METHODS:
+            return await self.app(scope, receive, send)
+        origin = _header(scope, b"origin")
+        if origin is not None:
+            value = origin.decode("latin-1").strip().rstrip("/").lower()
+            own = (_header(scope, b"host") or b"").decode("latin-1").strip().lower()
+            if value not in self.origins and (value == "null" or urlsplit(value).netloc != own):
+                response = JSONResponse({"detail": (
+                    f"cross-site request refused: Origin {value} is not this server ({own});"
+                    " allowed: the server's own pages and QUICKNAV_ALLOWED_ORIGINS")},
+                    status_code=403)  # fmt: skip
+                return await response(scope, receive, send)
+        if scope["method"] == "POST":
+            kind = (_header(scope, b"content-type") or b"").split(b";")[0].strip().lower()
+            if kind != b"application/json" and _header(scope, WEB_HEADER) is None:
+                response = JSONResponse({"detail": (
+                    "a POST must send a JSON body (Content-Type: application/json; '{}' where"
+                    " the route takes no fields) or the header X-QuickNav-Web: 1; got"
+                    f" Content-Type {kind.decode('latin-1') or 'none'}")}, status_code=415)  # fmt: skip
+                return await response(scope, receive, send)
+        return await self.app(scope, receive, send)
+
+
+class BodyLimit:
+    """Refuse request bodies over ``max_bytes`` with 413: by Content-Length up front, and by
+    counting for chunked bodies. Pure ASGI (a BaseHTTPMiddleware costs a task per request)."""
+
+    def __init__(self, app, max_bytes: int):
+        self.app = app
+        self.max_bytes = max_bytes
+
+    def _too_large(self, size: int | str) -> str:
+        return f"request body of {size} bytes exceeds the limit of {self.max_bytes} bytes"
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        for name, value in scope["headers"]:
+            if name == b"content-length" and value.isdigit() and int(value) > self.max_bytes:
+                response = JSONResponse(
+                    {"detail": self._too_large(value.decode())}, status_code=413
+                )
+                return await response(scope, receive, send)
+        received = 0
+
+        async def counted():
+            nonlocal received
+            message = await receive()
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > self.max_bytes:
+                    raise HTTPException(413, self._too_large(f"more than {received}"))
+            return message
+
+        return await self.app(scope, counted, send)

@@ -1,0 +1,142 @@
+"""A job's progress as Server-Sent Events: resumable with Last-Event-ID, ends with the terminal event."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from typing import Annotated
+
+import anyio
+from fastapi import APIRouter, Depends, Header, HTTPException, Request
+from fastapi.responses import StreamingResponse
+
+from quicknav_core.config.base import json_safe
+from quicknav_service.api.deps import JobId, JobsDep, StoreDep, client_address, require_token
+from quicknav_service.api.errors import AUTH, STORE, responses
+from quicknav_service.jobs.models import JobNotFound, StoreUnavailable
+
+router = APIRouter(prefix="/jobs", tags=["jobs"], dependencies=[Depends(require_token)])
+
+
+class EventStreamResponse(StreamingResponse):
+    media_type = "text/event-stream"
+    on_close = None  # called once the response has ended, however it ended
+
+    async def __call__(self, scope, receive, send):
+        try:
+            await super().__call__(scope, receive, send)
+        finally:
+            if self.on_close is not None:
+                self.on_close()
+
+
+EVENTS_DOC = {
+    "description": "Server-Sent Events: `id: <n>`, `event: <type>` (started, progress, ...; the"
+    " last is succeeded, failed or cancelled, or deleted), `data: <JSON>`; keep-alive comments",
+    "content": {"text/event-stream": {"schema": {"type": "string"}}},
+}
+
+class StreamSlots:
+    """Open event streams, per client address and in all (per API process): a stream beyond
+    either cap is refused with 503 and Retry-After, so idle viewers cannot take the server."""
+
+    RETRY_AFTER_S = 5
+
+    def __init__(self, per_client: int, total: int):
+        self.per_client = per_client
+        self.total = total
+        self.open: dict[str, int] = {}
+
+    def take(self, client: str) -> None:
+        if sum(self.open.values()) >= self.total:
+            raise HTTPException(503, f"{self.total} event streams are open, this server's limit"
+                                     " (QUICKNAV_SSE_MAX_TOTAL): retry later or poll GET /jobs/{id}",
+                                headers={"Retry-After": str(self.RETRY_AFTER_S)})  # fmt: skip
+        if self.open.get(client, 0) >= self.per_client:
+            raise HTTPException(503, f"this address has {self.per_client} event streams open, the"
+                                     " limit (QUICKNAV_SSE_MAX_PER_CLIENT): close one",
+                                headers={"Retry-After": str(self.RETRY_AFTER_S)})  # fmt: skip
+        self.open[client] = self.open.get(client, 0) + 1
+
+    def give_back(self, client: str) -> None:
+        left = self.open.get(client, 1) - 1
+        if left > 0:
+            self.open[client] = left
+        else:
+            self.open.pop(client, None)
+
+
+MAX_EVENT_ID = 2**63 - 1  # event ids are SQLite/Redis 64-bit integers
+KEEPALIVE_S = 15.0
+POLL_S = 0.05
+OUTAGE_POLL_S = 1.0
+TERMINAL = ("succeeded", "failed", "cancelled")
+
+
+@router.get("/{job_id}/events", response_class=EventStreamResponse,
+            responses={200: EVENTS_DOC, **responses(*AUTH, *STORE, 400, 404, 409, 422)})  # fmt: skip
+# (503 with Retry-After also when this client or the server has too many streams open)
+async def job_events(job_id: JobId, request: Request, store: StoreDep, jobs: JobsDep,
+                     last_event_id: Annotated[str | None, Header(
+                         alias="Last-Event-ID", description="resume after this event id")] = None,
+                     ) -> EventStreamResponse:  # fmt: skip
+    """Server-Sent Events of the job's progress; resumable with Last-Event-ID; ends with the terminal event."""
+    job_id = (await anyio.to_thread.run_sync(jobs.get, job_id)).id
+    try:
+        after = int(last_event_id) if last_event_id else 0
+        if not 0 <= after <= MAX_EVENT_ID:
+            raise ValueError
+    except ValueError:
+        raise HTTPException(
+            400, f"Last-Event-ID must be an event id (an integer from 0 to {MAX_EVENT_ID})"
+        ) from None
+
+    slots: StreamSlots = request.app.state.streams
+    client = client_address(request)
+    slots.take(client)
+
+    async def stream():
+        nonlocal after
+        idle = 0.0
+        while True:
+            if await request.is_disconnected():
+                return
+            try:
+                events = await anyio.to_thread.run_sync(store.events, job_id, after)
+                job = None if events else await anyio.to_thread.run_sync(store.get, job_id)
+            except JobNotFound:  # deleted while someone was watching: say so and end cleanly
+                yield f"event: deleted\ndata: {json.dumps({'type': 'deleted', 'job_id': job_id})}\n\n"
+                return
+            except StoreUnavailable:  # an outage: keep the stream open and try again
+                idle += OUTAGE_POLL_S
+                if idle >= KEEPALIVE_S:
+                    yield ": keep-alive (job store unavailable)\n\n"
+                    idle = 0.0
+                await asyncio.sleep(OUTAGE_POLL_S)
+                continue
+            for seq, ev in events:
+                after = seq
+                data = json.dumps(json_safe(ev), allow_nan=False)
+                yield f"id: {seq}\nevent: {ev.get('type', 'message')}\ndata: {data}\n\n"
+                if ev.get("type") in TERMINAL:
+                    return
+            if events:
+                idle = 0.0
+                continue
+            try:
+                if job.status.finished and not await anyio.to_thread.run_sync(
+                    store.events, job_id, after
+                ):
+                    return
+            except StoreUnavailable:
+                pass
+            idle += POLL_S
+            if idle >= KEEPALIVE_S:
+                yield ": keep-alive\n\n"
+                idle = 0.0
+            await asyncio.sleep(POLL_S)
+
+    response = EventStreamResponse(stream(), headers={"Cache-Control": "no-cache",
+                                                      "X-Accel-Buffering": "no"})  # fmt: skip
+    response.on_close = lambda: slots.give_back(client)
+    return response

@@ -1,0 +1,110 @@
+"""Job submission and lookup: thin over the jobs service (``quicknav_service.jobs.service``), which
+resolves a body into a config, checks this server's limits and talks to the store."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, Header, Query, Response
+
+from quicknav_service.api.deps import JobId, JobsDep, StoreDep, require_token
+from quicknav_service.api.errors import AUTH, CHANGE, STORE, responses
+from quicknav_service.jobs.models import Job, JobKind, JobStatus
+from quicknav_service.schemas import (
+    CancelRequest,
+    EvalJobCreate,
+    JobPublic,
+    JobsPublic,
+    SweepJobCreate,
+    TrainJobCreate,
+)
+
+router = APIRouter(prefix="/jobs", tags=["jobs"], dependencies=[Depends(require_token)],
+                   responses=responses(*AUTH, *STORE, 422))  # fmt: skip
+IdemKey = Annotated[str | None, Header(
+    alias="Idempotency-Key", max_length=200,
+    description="the same key with the same body returns the same job (a retry is safe)",
+)]  # fmt: skip
+
+# SQLite binds 64-bit integers only; no store holds anywhere near this many jobs.
+MAX_LIST_OFFSET = 2**31 - 1
+SUBMITTED = {"description": "queued", "headers": {"Location": {
+    "description": "the job's URL", "required": True, "schema": {"type": "string"}}}}  # fmt: skip
+
+
+def public(job: Job) -> JobPublic:
+    """A stored job as the API shows it."""
+    base = f"/jobs/{job.id}"
+    warnings = (job.result or {}).get("warnings") or []
+    return JobPublic(
+        id=job.id, kind=job.kind, status=job.status, progress=job.progress, metrics=job.metrics,
+        attempts=job.attempts, worker=job.worker, error=job.error, result=job.result,
+        warnings=[str(w) for w in warnings], cancel_requested=job.cancel_requested,
+        created_at=job.created_at, started_at=job.started_at, finished_at=job.finished_at,
+        request=job.request, config=job.config,
+        links={"self": base, "events": f"{base}/events", "metrics": f"{base}/metrics",
+               "artifacts": f"{base}/artifacts", "cancel": f"{base}/cancel"},
+    )  # fmt: skip
+
+
+def _submitted(job: Job, response: Response) -> JobPublic:
+    response.headers["Location"] = f"/jobs/{job.id}"
+    return public(job)
+
+
+# Submission and lookup handlers are async and call the store directly: each store call is one
+# short Redis round trip or SQLite transaction, cheaper than a hop through the thread pool. Slow
+# work (artifact files, deletes) stays in sync handlers, which FastAPI runs in threads.
+@router.post("/train", status_code=202, response_model=JobPublic,
+             responses={202: SUBMITTED, **responses(*CHANGE, 409)})  # fmt: skip
+async def submit_train_job(body: TrainJobCreate, jobs: JobsDep, response: Response,
+                           idempotency_key: IdemKey = None) -> JobPublic:  # fmt: skip
+    """Train from a preset or a full TrainConfig, with dotted-key overrides on top."""
+    return _submitted(jobs.submit_train(body, idempotency_key), response)
+
+
+@router.post("/sweep", status_code=202, response_model=JobPublic,
+             responses={202: SUBMITTED, **responses(*CHANGE, 409)})  # fmt: skip
+async def submit_sweep_job(body: SweepJobCreate, jobs: JobsDep, response: Response,
+                           idempotency_key: IdemKey = None) -> JobPublic:  # fmt: skip
+    """An Optuna sweep: a built-in space or a full SweepConfig, with overrides on top."""
+    return _submitted(jobs.submit_sweep(body, idempotency_key), response)
+
+
+@router.post("/eval", status_code=202, response_model=JobPublic,
+             responses={202: SUBMITTED, **responses(*CHANGE, 404, 409)})  # fmt: skip
+async def submit_eval_job(body: EvalJobCreate, jobs: JobsDep, response: Response,
+                          idempotency_key: IdemKey = None) -> JobPublic:  # fmt: skip
+    """Evaluate a train job's checkpoint or a baseline on fixed-seed held-out episodes."""
+    return _submitted(jobs.submit_eval(body, idempotency_key), response)
+
+
+@router.get("", response_model=JobsPublic)
+async def list_jobs(store: StoreDep, status: JobStatus | None = None, kind: JobKind | None = None,
+                    limit: Annotated[int, Query(ge=1, le=500)] = 50,
+                    offset: Annotated[int, Query(ge=0, le=MAX_LIST_OFFSET)] = 0) -> JobsPublic:  # fmt: skip
+    """Jobs, newest first; ``count`` is the number matching the filter."""
+    data, count = store.list(status=status, kind=kind, limit=limit, offset=offset)
+    return JobsPublic(data=[public(j) for j in data], count=count)
+
+
+@router.get("/{job_id}", response_model=JobPublic, responses=responses(404, 409))
+async def read_job(job_id: JobId, jobs: JobsDep) -> JobPublic:
+    """One job, by its id or a unique prefix of it."""
+    return public(jobs.get(job_id))
+
+
+@router.post("/{job_id}/cancel", response_model=JobPublic,
+             responses=responses(*CHANGE, 404, 409))  # fmt: skip
+async def cancel_job(job_id: JobId, jobs: JobsDep, body: CancelRequest | None = None) -> JobPublic:
+    """A queued job is cancelled at once; a running one stops at its next chunk boundary. Send
+    ``{}`` as a JSON body (or the web view's header): a cross-site form cannot."""
+    return public(jobs.cancel(job_id))
+
+
+@router.delete("/{job_id}", status_code=204, response_class=Response,
+               responses={204: {"description": "deleted"}, **responses(403, 404, 409)})  # fmt: skip
+def delete_job(job_id: JobId, jobs: JobsDep) -> Response:
+    """Delete a finished job and its artifacts (a sweep: with its trial batches)."""
+    jobs.delete(job_id)
+    return Response(status_code=204)

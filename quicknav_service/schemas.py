@@ -1,0 +1,177 @@
+"""Request and response bodies of the HTTP API (one schema per direction).
+
+The train and sweep bodies are the library's request models: the API, the CLI and the SDK send the
+same requests to the same ``quicknav_core.config.resolve``. The eval body is the service's own: it
+names the trained policy by ``job_id`` (the library's ``source`` is a run folder for the CLI), and
+what it documents is exactly what it accepts.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from quicknav_core.config import SweepRequest, TrainRequest
+from quicknav_core.config.base import Split, StrictModel
+from quicknav_service.jobs.models import JobKind, JobStatus
+
+# Ids are shown (CLI, web) by their first 8 characters; shorter prefixes match too many jobs.
+MIN_ID_PREFIX = 4
+ID_DESCRIPTION = f"a job's id or a unique prefix of it (at least {MIN_ID_PREFIX} characters)"
+
+TrainJobCreate = TrainRequest
+SweepJobCreate = SweepRequest
+
+
+class EvalJobCreate(StrictModel):
+    """Evaluate a train job's checkpoint (``job_id``) or a baseline (``policy``) on fixed-seed
+    held-out episodes."""
+
+    job_id: str | None = Field(
+        None, min_length=MIN_ID_PREFIX, max_length=200,
+        description=f"the train job whose policy is evaluated: {ID_DESCRIPTION}",
+    )  # fmt: skip
+    policy: Literal["random", "oracle"] | None = Field(None, description="a baseline policy")
+    env: dict[str, Any] = Field(
+        default_factory=dict,
+        description="EnvConfig fields (dotted keys or sections) set on the policy's env: the train"
+        " job's own for a trained policy, the defaults for a baseline",
+        examples=[{"max_steps": 200}],
+    )
+    episodes: int = Field(100, ge=1, le=100_000)
+    seed: int = Field(0, ge=0, le=2**31 - 1, description="episode seed: same seed, same episodes")
+    split: Split = Field("test", description="room bank: test (held out) or train")
+    deterministic: bool = Field(True, description="act with the policy's mean, not a sample")
+    stochastic: bool | None = Field(
+        None, deprecated=True,
+        description="deprecated: the opposite of 'deterministic'; send 'deterministic' instead",
+    )  # fmt: skip
+
+    @classmethod
+    def unknown_field_hint(cls, key: str) -> str | None:
+        """The library's names of the trained policy, which the service calls ``job_id``."""
+        if key in ("source", "run"):
+            return 'the service names the trained policy by train job id: {"job_id": "<id>"}'
+        return None
+
+    @model_validator(mode="after")
+    def _one(self) -> EvalJobCreate:
+        if (self.job_id is None) == (self.policy is None):
+            raise ValueError("give exactly one of 'job_id' (a train job) or 'policy' (random or oracle)")
+        return self
+
+    def as_request(self, job_id: str | None) -> dict[str, Any]:
+        """The library's request (an ``EvalRequest``), the trained policy named by its full id."""
+        sent = self.model_dump(exclude_unset=True, exclude={"job_id"})
+        if job_id is not None:
+            sent["source"] = job_id
+        return sent
+
+
+class CancelRequest(BaseModel):
+    """The body of a cancel: an empty JSON object (it makes the request one a cross-site form
+    cannot send)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+
+class JobPublic(BaseModel):
+    """A job as the API shows it: ``request`` as sent, ``config`` as resolved (what runs)."""
+
+    id: str
+    kind: JobKind
+    status: JobStatus
+    progress: float
+    metrics: dict[str, Any]
+    attempts: int
+    worker: str | None = Field(None, description="the worker running the job (or that ran it last)")
+    error: str | None
+    result: dict[str, Any] | None
+    warnings: list[str] = Field(
+        default_factory=list,
+        description="what went wrong without failing the job (e.g. a picture that did not render,"
+        " named by its artifact); empty when all went well",
+    )
+    cancel_requested: bool
+    created_at: float
+    started_at: float | None
+    finished_at: float | None
+    request: dict[str, Any]
+    config: dict[str, Any]
+    links: dict[str, str]
+
+
+class JobsPublic(BaseModel):
+    """A page of jobs, newest first; ``count`` is the number matching the filter."""
+
+    data: list[JobPublic]
+    count: int
+
+
+class JobMetricsPublic(BaseModel):
+    """A job's metrics history: one row per training chunk."""
+
+    job_id: str
+    metrics: list[dict[str, Any]]
+
+
+class ArtifactPublic(BaseModel):
+    name: str = Field(description="path inside the job's folder, e.g. checkpoint/state.msgpack")
+    bytes: int
+
+
+class ArtifactsPublic(BaseModel):
+    job_id: str
+    artifacts: list[ArtifactPublic]
+
+
+class Health(BaseModel):
+    status: Literal["ok"]
+
+
+class Readiness(BaseModel):
+    status: Literal["ready", "unavailable"]
+    checks: dict[str, str] = Field(description="'ok' or what is wrong, per check (store, disk)")
+
+
+class RolloutEndpoint(BaseModel):
+    """A gRPC Rollout server that announced itself."""
+
+    model_config = ConfigDict(extra="allow")
+
+    worker: str
+    address: str = Field(description="host:port of the gRPC server")
+    sessions: int = Field(0, description="open Rollout streams")
+    max_sessions: int | None = None
+    env_steps_served: int = 0
+
+
+class RolloutEndpoints(BaseModel):
+    endpoints: list[RolloutEndpoint]
+    count: int
+
+
+class PresetPublic(BaseModel):
+    description: str
+    notes: str | None = None
+    config: dict[str, Any] = Field(description="the preset as written: what differs from the defaults")
+    resolved: dict[str, Any] = Field(description="the whole TrainConfig the preset gives")
+
+
+class HTTPError(BaseModel):
+    """An error: ``detail`` says what is wrong and what to do."""
+
+    detail: str
+
+
+class FieldError(BaseModel):
+    loc: list[str | int] = Field(description="where: 'body', 'query', 'path' or 'header', then the field")
+    msg: str
+    type: str
+
+
+class ValidationErrorBody(BaseModel):
+    """A request that cannot be accepted: every bad field at once."""
+
+    detail: list[FieldError]

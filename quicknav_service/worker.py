@@ -1,0 +1,521 @@
+"""The worker: claims jobs under a lease, runs them through quicknav_core, reports progress.
+
+- A heartbeat thread renews the lease while a job runs; if the lease is lost (another worker took
+  the job over) the run stops at its next unit without reporting anything.
+- Training runs through the chunked runner: chunks last at most ``max_chunk_s`` seconds, a
+  progress event and a checkpoint after each, and cancellation and shutdown are checked after
+  every unit (about a second of training), so a cancel takes effect within seconds and a
+  reclaimed job resumes from its last checkpoint. Evaluations run in batches of episodes with a
+  progress event and a cancel check after each.
+- Graceful shutdown (SIGTERM): stop after the current unit, keep the checkpoint, hand the job back.
+- Failures are job failures, never worker deaths: a full disk fails the job with a reason that
+  says so and what was kept; a store outage (Redis down, SQLite unable to write) is waited out
+  with backoff, and the worker carries on when the store is back.
+- Trainers are kept warm across jobs with the same config (same compiled programs), and JAX's
+  persistent compilation cache is on, so a repeated job skips compilation.
+"""
+
+from __future__ import annotations
+
+import errno
+import logging
+import math
+import os
+import socket
+import threading
+import time
+import traceback
+import uuid
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from quicknav_service.jobs.models import Job, JobKind, JobStatus, StoreUnavailable
+from quicknav_service.settings import Settings
+
+log = logging.getLogger("quicknav.worker")
+
+MAX_BACKOFF_S = 10.0
+COORDINATE_POLL_S = 1.0  # how often a sweep looks at its trial batches
+CANCEL_POLL_S = 1.0  # a running job's cancel flag is read at most this often
+
+
+def failure_reason(error: BaseException, job_dir: Path) -> str:
+    """A job's failure in words a person can act on: a full disk and memory are named."""
+    text = f"{type(error).__name__}: {error}"
+    if isinstance(error, OSError) and error.errno == errno.ENOSPC:
+        return f"disk full (ENOSPC) while writing {error.filename or 'a file'}; {kept(job_dir)}"
+    if isinstance(error, MemoryError) or "RESOURCE_EXHAUSTED" in str(error):
+        return f"out of memory: {text[:500]}"
+    return text
+
+
+def kept(job_dir: Path) -> str:
+    """What a failed job leaves behind (the last checkpoint, metrics lines)."""
+    from quicknav_core.train.run import METRICS_FILE, checkpoint_dir
+
+    parts = []
+    ckpt = checkpoint_dir(job_dir) if job_dir.exists() else None
+    if ckpt is not None:
+        try:
+            import json
+
+            meta = json.loads((ckpt / "meta.json").read_text())
+            parts.append(f"the checkpoint of chunk {meta['chunk']} ({meta['env_steps']:,} env steps)")
+        except (OSError, ValueError, KeyError):
+            parts.append("the last checkpoint")
+    metrics = job_dir / METRICS_FILE
+    if metrics.exists():
+        lines = sum(1 for line in metrics.read_text().splitlines() if line.strip())
+        parts.append(f"metrics.jsonl ({lines} chunks)")
+    return "kept: " + (", ".join(parts) if parts else "nothing (no checkpoint yet)")
+
+
+class Worker:
+    def __init__(self, store, settings: Settings, worker_id: str | None = None):
+        self.store = store
+        self.settings = settings
+        self.id = worker_id or f"{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:6]}"
+        self.shutdown = threading.Event()
+        self.busy = False
+        self._trainers: dict[str, Any] = {}
+        self._coordinators: list[threading.Thread] = []  # sweeps this worker follows
+        settings.artifacts_dir.mkdir(parents=True, exist_ok=True)
+
+    # ------------------------------------------------------------------ loop
+    def run_forever(self, poll_s: float = 0.25) -> None:
+        """Claim and run jobs until shut down; nothing a job or the store does ends the loop."""
+        _enable_jax_cache(self.settings)
+        backoff = poll_s
+        while not self.shutdown.is_set():
+            try:
+                ran = self.run_once()
+                backoff = poll_s
+            except StoreUnavailable as e:
+                log.warning("job store unavailable (%s): retrying in %.1f s", e.reason, backoff)
+                self.shutdown.wait(backoff)
+                backoff = min(backoff * 2, MAX_BACKOFF_S)
+                continue
+            except Exception:
+                log.exception("worker %s: unexpected error, carrying on", self.id)
+                self.shutdown.wait(backoff)
+                backoff = min(backoff * 2, MAX_BACKOFF_S)
+                continue
+            if not ran:
+                self.shutdown.wait(poll_s)
+        self.join_coordinators()
+
+    def run_burst(self, poll_s: float = 0.25) -> int:
+        """Drain the store, then return the number of jobs run.
+
+        Runs queued jobs and jobs orphaned by a dead worker (reclaimed once their lease lapses), and
+        returns only when no job is queued or running: a running job whose worker died may come
+        back to the queue, so it is waited for rather than forgotten.
+        """
+        _enable_jax_cache(self.settings)
+        ran = 0
+        while not self.shutdown.is_set():
+            try:
+                if self.run_once():
+                    ran += 1
+                    continue
+                counts = self.store.counts()
+            except StoreUnavailable as e:
+                log.warning("job store unavailable (%s): waiting", e.reason)
+                self.shutdown.wait(1.0)
+                continue
+            if counts.get("queued", 0) == 0 and counts.get("running", 0) == 0:
+                break
+            self.shutdown.wait(poll_s)
+        self.join_coordinators()
+        return ran
+
+    def run_once(self) -> bool:
+        """Claim and run one job; False if the queue was empty (burst mode for tests)."""
+        if self.shutdown.is_set():
+            return False
+        job = self.store.claim(self.id, self.settings.lease_s)
+        if job is None:
+            return False
+        if job.kind == JobKind.sweep:
+            # a sweep only coordinates (its trials are child jobs any worker claims, this one
+            # included): it runs beside the worker's jobs instead of holding the worker
+            t = threading.Thread(target=self._run_claimed, args=(job, False),
+                                 name=f"sweep-{job.id[:8]}", daemon=True)  # fmt: skip
+            self._coordinators = [c for c in self._coordinators if c.is_alive()] + [t]
+            t.start()
+            return True
+        self._run_claimed(job, True)
+        return True
+
+    def join_coordinators(self, timeout: float = 30.0) -> None:
+        """Wait for the sweeps this worker coordinates to stop (after a shutdown they hand their
+        jobs back)."""
+        deadline = time.monotonic() + timeout
+        for t in self._coordinators:
+            t.join(max(0.0, deadline - time.monotonic()))
+
+    def _run_claimed(self, job: Job, busy: bool) -> None:
+        """Run a claimed job under a heartbeat that renews its lease."""
+        if busy:
+            self.busy = True
+        lost = threading.Event()
+        beat_stop = threading.Event()
+
+        def beat():
+            while not beat_stop.wait(self.settings.heartbeat_s):
+                try:
+                    if not self.store.heartbeat(job.id, self.id, self.settings.lease_s):
+                        lost.set()
+                        return
+                except StoreUnavailable:
+                    continue  # an outage: keep trying; the lease decides if it lasts too long
+                except Exception:
+                    log.exception("heartbeat of job %s", job.id)
+
+        hb = threading.Thread(target=beat, name=f"heartbeat-{job.id[:8]}", daemon=True)
+        hb.start()
+        try:
+            self._execute(job, lost)
+        finally:
+            beat_stop.set()
+            hb.join()
+            if busy:
+                self.busy = False
+
+    # ------------------------------------------------------------------ store calls
+    def _best_effort(self, fn: Callable, *args) -> Any:
+        """A store call whose loss costs nothing lasting (a progress event): skipped in an outage."""
+        try:
+            return fn(*args)
+        except StoreUnavailable as e:
+            log.warning("job store unavailable (%s): %s skipped", e.reason, fn.__name__)
+            return None
+
+    def _until_done(self, fn: Callable, *args, **kwargs) -> Any:
+        """A store call that must land (a job's end): retried with backoff through outages. On a
+        shutdown it is abandoned: the lease lapses and another worker finishes the job."""
+        backoff = 0.25
+        while True:
+            try:
+                return fn(*args, **kwargs)
+            except StoreUnavailable as e:
+                if self.shutdown.is_set():
+                    log.warning("shutting down during a store outage; %s abandoned", fn.__name__)
+                    return None
+                log.warning("job store unavailable (%s): %s again in %.1f s", e.reason,
+                            fn.__name__, backoff)  # fmt: skip
+                self.shutdown.wait(backoff)
+                backoff = min(backoff * 2, MAX_BACKOFF_S)
+
+    # ------------------------------------------------------------------ jobs
+    def job_dir(self, job_id: str) -> Path:
+        return self.settings.artifacts_dir / job_id
+
+    def _stopper(self, job: Job, lost: threading.Event) -> Callable[..., str | None]:
+        """Why the job should stop now (lost lease, shutdown, cancel), or None. Cheap to ask
+        often: the store is read at most every CANCEL_POLL_S seconds, or whenever ``fresh``
+        (at chunk ends, which also write progress and checkpoints)."""
+        seen = {"at": 0.0, "cancel": False}
+
+        def reason(fresh: bool = False) -> str | None:
+            if lost.is_set():
+                return "lost"
+            if self.shutdown.is_set():
+                return "shutdown"
+            now = time.monotonic()
+            if fresh or now - seen["at"] >= CANCEL_POLL_S:
+                seen["at"] = now
+                try:
+                    seen["cancel"] = self.store.get(job.id).cancel_requested
+                except StoreUnavailable:
+                    pass
+            return "cancelled" if seen["cancel"] else None
+
+        return reason
+
+    @staticmethod
+    def config_of(job: Job) -> dict[str, Any]:
+        """The job's resolved config (jobs stored before configs were keep it in the request)."""
+        if job.config:
+            return job.config
+        if job.kind in (JobKind.train, JobKind.sweep) and "config" in job.request:
+            return job.request["config"]
+        raise ValueError(
+            "the job has no resolved config (it was submitted to an older version of the"
+            " service); submit it again"
+        )
+
+    def _report(self, job: Job, progress: float, metrics: dict[str, Any]) -> None:
+        self._best_effort(self.store.progress, job.id, self.id, progress, metrics)
+        self._best_effort(self.store.publish, job.id,
+                          {"type": "progress", "progress": progress, "metrics": metrics})  # fmt: skip
+
+    def _phase(self, job: Job, phase: str) -> None:
+        """Say what a running job does before its first numbers: ``compiling`` (the jit of its
+        first chunk or batch, tens of seconds cold), with the time it began."""
+        self._report(job, job.progress, {"phase": phase, "phase_since": round(time.time(), 3)})
+
+    def _execute(self, job: Job, lost: threading.Event) -> None:
+        self._best_effort(self.store.publish, job.id, {
+            "type": "started", "status": "running", "worker": self.id, "attempt": job.attempts})  # fmt: skip
+        try:
+            runner = {
+                JobKind.train: self._train,
+                JobKind.eval: self._eval,
+                JobKind.sweep: self._sweep,
+                JobKind.trial: self._trial,
+            }
+            outcome, result = runner[job.kind](job, lost)
+        except Exception as e:
+            log.exception("job %s failed", job.id)
+            reason = failure_reason(e, self.job_dir(job.id))
+            try:
+                self.job_dir(job.id).mkdir(parents=True, exist_ok=True)
+                (self.job_dir(job.id) / "error.txt").write_text(traceback.format_exc())
+            except OSError:
+                pass  # a full disk: the reason says so, the traceback is in the log
+            if not lost.is_set():
+                self._until_done(self.store.finish, job.id, self.id, JobStatus.failed, error=reason)
+            return
+        if outcome == "lost":
+            return  # someone else owns the job now
+        if outcome == "shutdown":
+            self._until_done(self.store.release, job.id, self.id)
+        elif outcome == "cancelled":
+            self._until_done(self.store.finish, job.id, self.id, JobStatus.cancelled, result=result)
+        else:
+            self._until_done(self.store.finish, job.id, self.id, JobStatus.succeeded, result=result)
+
+    def trainer_for(self, config):
+        """A warm trainer for this exact config (its compiled chunks are reused)."""
+        from quicknav_core.train.trainers import make_trainer
+
+        key = config.model_dump_json()
+        if key not in self._trainers:
+            if len(self._trainers) >= 8:
+                self._trainers.pop(next(iter(self._trainers)))
+            self._trainers[key] = make_trainer(config)
+        return self._trainers[key]
+
+    def _train(self, job: Job, lost: threading.Event):
+        from quicknav_core.config import TrainConfig
+        from quicknav_core.train.run import checkpoint_dir, train_run
+
+        config = TrainConfig.model_validate(self.config_of(job))
+        run_dir = self.job_dir(job.id)
+        resume = checkpoint_dir(run_dir) is not None
+        why = self._stopper(job, lost)
+        stop_reason: dict[str, str] = {}
+
+        def on_chunk(r) -> bool:
+            metrics = {"phase": "training", "chunk": r.chunk, "chunks": r.chunks,
+                       "env_steps": r.env_steps, "total_steps": r.total_steps,
+                       "steps_per_s": r.steps_per_s, **r.metrics}  # fmt: skip
+            self._report(job, r.env_steps / max(r.total_steps, 1), metrics)
+            reason = why(fresh=True)
+            if reason:
+                stop_reason["why"] = reason
+                return True
+            return False
+
+        def interrupt() -> bool:
+            reason = why()
+            if reason:
+                stop_reason["why"] = reason
+            return reason is not None
+
+        if resume:
+            self._best_effort(self.store.publish, job.id, {"type": "resumed", "from_checkpoint": True})
+        self._phase(job, "compiling")
+        summary = train_run(config, run_dir, callback=on_chunk, resume=resume,
+                            trainer=self.trainer_for(config), max_chunk_s=self.settings.max_chunk_s,
+                            interrupt=interrupt,
+                            replay_every_s=self.settings.replay_checkpoint_every_s)  # fmt: skip
+        result = {"env_steps": summary["env_steps"], "total_steps": summary["total_steps"],
+                  "chunks_done": summary["chunks_done"], "final": summary["final"],
+                  "warnings": summary["warnings"]}  # fmt: skip
+        if summary["total_steps"] != config.total_steps:
+            result["note"] = (
+                f"total_steps={config.total_steps:,} is not a whole number of updates"
+                f" (num_envs x num_steps); the run makes {summary['total_steps']:,} env steps"
+            )
+        return stop_reason.get("why", "done"), result
+
+    def _eval(self, job: Job, lost: threading.Event):
+        from quicknav_core.config import EvalConfig
+        from quicknav_core.eval.evaluate import EvalStopped, run_eval
+
+        cfg = EvalConfig.model_validate(self.config_of(job))
+        run_dir = self.job_dir(cfg.source) if cfg.policy == "trained" else None
+        why = self._stopper(job, lost)
+        stop_reason: dict[str, str] = {}
+
+        def on_batch(done: int, total: int) -> bool:
+            self._report(job, done / total,
+                         {"phase": "evaluating", "episodes_done": done, "episodes": total})  # fmt: skip
+            reason = why(fresh=True)
+            if reason:
+                stop_reason["why"] = reason
+            return reason is not None
+
+        self._phase(job, "compiling")
+        try:
+            result, _ = run_eval(cfg, self.job_dir(job.id), run_dir=run_dir, progress=on_batch)
+        except EvalStopped as e:
+            return stop_reason.get("why", "cancelled"), {"episodes_done": e.done, "episodes": e.total}
+        self._report(job, 1.0, result["metrics"])
+        return "done", {"agent": result["agent"], "metrics": result["metrics"],
+                        "warnings": result["warnings"]}  # fmt: skip
+
+    def sweep_storage(self, sweep_id: str):
+        """The Optuna storage of a sweep job's study, shared by every worker: journal storage on
+        this store's Redis (keys under quicknav:sweep:<id>:) or SQLite in the sweep's folder."""
+        if self.settings.redis_url:
+            from optuna.storages import JournalStorage
+            from optuna.storages.journal import JournalRedisBackend
+
+            return JournalStorage(
+                JournalRedisBackend(self.settings.redis_url, prefix=f"quicknav:sweep:{sweep_id}:")
+            )
+        import optuna
+
+        path = (self.job_dir(sweep_id) / "study.db").resolve()
+        return optuna.storages.RDBStorage(
+            f"sqlite:///{path}", engine_kwargs={"connect_args": {"timeout": 60}}
+        )
+
+    def _sweep(self, job: Job, lost: threading.Event):
+        """Coordinate a sweep: create its study, submit its trial batches as child jobs (any
+        worker runs them, all telling the one study), follow them, then write the outputs."""
+        from quicknav_core.config import SweepConfig
+        from quicknav_core.sweep import (
+            best_so_far,
+            finished_count,
+            open_study,
+            write_outputs,
+            write_trials,
+        )
+
+        cfg = SweepConfig.model_validate(self.config_of(job))
+        folder = self.job_dir(job.id)
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / "sweep_config.json").write_text(cfg.model_dump_json(indent=2))
+        study = open_study(cfg, self.sweep_storage(job.id), study_name=f"sweep-{job.id}")
+        children = []
+        for i in range(math.ceil(cfg.trials / cfg.parallel)):
+            size = min(cfg.parallel, cfg.trials - i * cfg.parallel)
+            config = {"parent": job.id, "batch": i, "trials": size, "sweep": cfg.model_dump(mode="json")}
+            # the key makes this idempotent: a coordinator that takes over finds the same children
+            child, _ = self._until_done(self.store.submit, JobKind.trial, {"parent": job.id, "batch": i},
+                                        config, idempotency_key=f"sweep:{job.id}:batch:{i}")  # fmt: skip
+            children.append(child.id)
+        why = self._stopper(job, lost)
+        shown = None
+        while True:
+            reason = why()
+            if reason in ("lost", "shutdown"):
+                return reason, {}
+            jobs = [self._best_effort(self.store.get, c) for c in children]
+            if reason == "cancelled":
+                for c in jobs:
+                    if c is not None and not c.status.finished:
+                        self._best_effort(self.store.cancel, c.id)
+            states = [c.status.value for c in jobs if c is not None]
+            best_value, best_params = best_so_far(study)
+            metrics = {"finished": finished_count(study), "total": cfg.trials,
+                       "batches": len(children), "batches_running": states.count("running"),
+                       "batches_failed": states.count("failed"), "best_value": best_value,
+                       "best_params": best_params}  # fmt: skip
+            if metrics != shown:
+                shown = metrics
+                self._report(job, min(1.0, metrics["finished"] / cfg.trials), metrics)
+                write_trials(study, cfg, folder)
+            if all(c is not None and c.status.finished for c in jobs):
+                break
+            self.shutdown.wait(COORDINATE_POLL_S)
+        summary = write_outputs(study, cfg, folder)
+        summary.update({"batches": len(children), "children": children,
+                        "batches_failed": states.count("failed"),
+                        "batches_cancelled": states.count("cancelled")})  # fmt: skip
+        if reason == "cancelled":
+            return "cancelled", summary
+        if summary["best_value"] is None and states.count("failed"):
+            first = next(c for c in jobs if c.status.value == "failed")
+            raise RuntimeError(f"no trial completed; trial batch {first.id} failed: {first.error}")
+        return "done", summary
+
+    def _trial(self, job: Job, lost: threading.Event):
+        """A batch of a sweep's trials: ask them from the shared study, train, evaluate, tell.
+        Run again after its worker died, it first reruns the trials that worker left unfinished."""
+        from quicknav_core.config import SweepConfig
+        from quicknav_core.sweep import finished_count, open_study, retry_lost, run_batch
+
+        spec = self.config_of(job)
+        cfg = SweepConfig.model_validate(spec["sweep"])
+        parent, tag = spec["parent"], str(spec["batch"])
+        # each batch samples from its own stream (its index; a rerun: also its attempt)
+        stream = 1 + spec["batch"] + 100_003 * (job.attempts - 1)
+        study = open_study(cfg, self.sweep_storage(parent), study_name=f"sweep-{parent}",
+                           stream=stream)  # fmt: skip
+        retried = retry_lost(study, tag)
+        why = self._stopper(job, lost)
+        todo = spec["trials"] - finished_count(study, tag)
+        if todo > 0 and why(fresh=True) is None:
+            run_batch(study, cfg, todo, tag=tag, stop=lambda: why() is not None)
+        reason = why(fresh=True)
+        if reason in ("lost", "shutdown"):
+            return reason, {}
+        mine = [t for t in study.get_trials(deepcopy=False) if t.user_attrs.get("batch") == tag]
+        result = {"parent": parent, "batch": spec["batch"], "trials": finished_count(study, tag),
+                  "retried": retried,
+                  "values": {str(t.number): t.value for t in mine if t.value is not None}}  # fmt: skip
+        return reason or "done", result
+
+
+def _enable_jax_cache(settings: Settings) -> None:
+    """The worker's devices (QUICKNAV_DEVICES); JAX's persistent compilation cache in the data
+    folder, unless JAX_COMPILATION_CACHE_DIR already names one (an operator's shared cache, or a
+    test session's); and the room-bank cache (a bank is carved once per config, then read back)."""
+    import jax
+
+    from quicknav_core.env.rooms import set_bank_cache
+
+    if settings.devices is not None:
+        # before the first computation starts a backend: this worker sees only its devices
+        jax.config.update("jax_cuda_visible_devices", settings.devices)
+        jax.config.update("jax_rocm_visible_devices", settings.devices)
+    set_bank_cache(settings.data_dir / "room-banks")
+
+    if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
+        jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"])
+    else:
+        path = settings.data_dir / "jax-cache"
+        try:
+            path.mkdir(parents=True, exist_ok=True)
+        except OSError:
+            return  # no cache rather than no worker
+        jax.config.update("jax_compilation_cache_dir", str(path.resolve()))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+
+
+def start_worker_threads(
+    store, settings: Settings, count: int
+) -> list[tuple[Worker, threading.Thread]]:
+    """In-process workers (tests, and `quicknav serve --worker-threads`)."""
+    out = []
+    for i in range(count):
+        w = Worker(store, settings, worker_id=f"embedded-{os.getpid()}-{i}")
+        t = threading.Thread(target=w.run_forever, name=f"worker-{i}", daemon=True)
+        t.start()
+        out.append((w, t))
+    return out
+
+
+def stop_workers(workers, timeout: float = 30.0) -> None:
+    """Stop in-process workers at their next unit and wait for them (up to ``timeout``)."""
+    for w, _ in workers:
+        w.shutdown.set()
+    deadline = time.time() + timeout
+    for _, t in workers:
+        t.join(max(0.0, deadline - time.time()))

@@ -1,0 +1,231 @@
+"""README's journeys, read out of the Markdown and run as a user runs them.
+
+A journey is the fenced ``bash`` blocks that follow an HTML comment ``<!-- journey: NAME -->``
+(invisible on GitHub and in the docs site), in the order they appear in README.md and then in
+docs/*.md. Sybil's Markdown lexer finds the fenced blocks; this module only decides which of them
+belong to a journey and runs their lines one by one, as they are written, with these stand-ins:
+
+- ``uv sync`` is not run again: the tests already run inside the synced environment (and syncing
+  it under a test session that uses it would be a race). Every ``uv run`` gets ``UV_NO_SYNC=1`` for
+  the same reason, and ``UV_PROJECT`` so that it finds this checkout from a scratch folder.
+- ``uv run quicknav serve`` starts in the background on free ports, told them the way a user tells
+  it (``QUICKNAV_PORT``, ``QUICKNAV_GRPC_PORT``, ``QUICKNAV_DATA_DIR``); ``localhost:8000`` in a
+  command becomes that address, and the ``quicknav jobs`` commands find it through ``QUICKNAV_URL``.
+- ``<id>`` is the job id the command before printed, cut to its first 8 characters (the short id
+  a user copies); ``<run-dir>`` is the run folder ``quicknav train`` printed.
+- a ``curl`` line gets ``-w`` with the HTTP status appended, so that each one is checked for it.
+- a ``python`` block runs as a script (``uv run python -``), with ``127.0.0.1:8000`` and
+  ``127.0.0.1:50051`` turned into the service's HTTP and gRPC addresses.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shlex
+import signal
+import subprocess
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import httpx
+from sybil import Document
+from sybil.parsers.markdown.lexers import FencedCodeBlockLexer
+
+ROOT = Path(__file__).resolve().parents[2]
+MARKER = re.compile(r"<!--\s*journey:\s*(?P<name>[\w-]+)\s*-->\s*\Z")
+JOB_ID = re.compile(r"\b[0-9a-f]{32}\b")
+RUN_DIR = re.compile(r"run folder: (?P<dir>\S+)")
+STATUS = re.compile(r"\[http (?P<code>\d{3})\]\s*\Z")
+
+
+@dataclass
+class Block:
+    """A fenced code block of README.md or a docs page; ``journey`` is its marker's name, if any."""
+
+    journey: str | None
+    path: Path
+    line: int
+    language: str
+    source: str
+
+    @property
+    def commands(self) -> list[str]:
+        return _commands(self.source)
+
+    @property
+    def where(self) -> str:
+        return f"{self.path.relative_to(ROOT) if self.path.is_relative_to(ROOT) else self.path}:{self.line}"
+
+
+def doc_files() -> list[Path]:
+    return [ROOT / "README.md", *sorted((ROOT / "docs").glob("**/*.md"))]
+
+
+def _commands(source: str) -> list[str]:
+    """A block's command lines: continuation lines joined, blank and comment-only lines left out."""
+    lines, pending = [], ""
+    for raw in source.splitlines():
+        line = pending + raw
+        if line.rstrip().endswith("\\"):
+            pending = line.rstrip()[:-1] + " "
+            continue
+        pending = ""
+        if line.strip() and not line.lstrip().startswith("#"):
+            lines.append(line.strip())
+    return lines
+
+
+def code_blocks(files: list[Path] | None = None) -> list[Block]:
+    """Every fenced code block of the pages, in reading order, with its journey marker if it has one."""
+    blocks = []
+    for path in files or doc_files():
+        text = path.read_text()
+        document = Document(text, str(path))
+        for region in FencedCodeBlockLexer(r"[\w-]*")(document):
+            before = text[: region.start].rstrip(" ")
+            marker = MARKER.search(before.removesuffix("\n"))
+            blocks.append(Block(marker["name"] if marker else None, path,
+                                text.count("\n", 0, region.start) + 1,
+                                region.lexemes["language"] or "", str(region.lexemes["source"])))  # fmt: skip
+    return blocks
+
+
+def journey_blocks(files: list[Path] | None = None) -> list[Block]:
+    """Every block marked as part of a journey, in reading order."""
+    blocks = [b for b in code_blocks(files) if b.journey is not None]
+    for b in blocks:
+        assert b.language in ("bash", "python"), (
+            f"{b.where}: a journey block must be bash or python, not {b.language!r}")  # fmt: skip
+    return blocks
+
+
+def journey(name: str) -> list[Block]:
+    return [b for b in journey_blocks() if b.journey == name]
+
+
+@dataclass
+class Ran:
+    command: str
+    ran: str
+    code: int
+    stdout: str
+    stderr: str
+    seconds: float
+
+    def __str__(self) -> str:
+        return (f"$ {self.command}\n(ran: {self.ran})\nexit {self.code} after {self.seconds:.1f} s\n"
+                f"--- stdout\n{self.stdout[-4000:]}\n--- stderr\n{self.stderr[-4000:]}")  # fmt: skip
+
+
+@dataclass
+class Runner:
+    """Runs journey commands in ``workdir`` against a service it starts on free ports."""
+
+    workdir: Path
+    port: int
+    grpc_port: int
+    timeout_s: float = 600.0
+    last_id: str | None = None
+    run_dir: str | None = None
+    history: list[Ran] = field(default_factory=list)
+    server: subprocess.Popen | None = None
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+    def env(self) -> dict[str, str]:
+        env = {k: v for k, v in os.environ.items() if not k.startswith("QUICKNAV_")}
+        env.update(UV_NO_SYNC="1", UV_PROJECT=str(ROOT), COLUMNS="80", NO_COLOR="1",
+                   QUICKNAV_URL=self.url, QUICKNAV_PORT=str(self.port),
+                   QUICKNAV_GRPC_PORT=str(self.grpc_port),
+                   QUICKNAV_DATA_DIR=str(self.workdir / "data"))  # fmt: skip
+        return env
+
+    def substitute(self, command: str) -> str:
+        if "<id>" in command:
+            assert self.last_id, f"{command!r} needs a job id, and no command before printed one"
+            command = command.replace("<id>", self.last_id[:8])
+        if "<run-dir>" in command:
+            assert self.run_dir, f"{command!r} needs a run folder, and no train printed one"
+            command = command.replace("<run-dir>", shlex.quote(self.run_dir))
+        for host in ("localhost:8000", "127.0.0.1:8000"):
+            command = command.replace(host, f"127.0.0.1:{self.port}")
+        return command
+
+    def run(self, command: str) -> Ran | None:
+        words = shlex.split(command, comments=True)
+        if words[:2] == ["uv", "sync"]:
+            return None  # see the module's docstring
+        if words[:4] == ["uv", "run", "quicknav", "serve"]:
+            self.start_server(command)
+            return None
+        assert words[:3] == ["uv", "run", "quicknav"] or words[0] == "curl", (
+            f"the journey runner does not know how to run {command!r}"
+        )
+        ran = self.substitute(command)
+        if words[0] == "curl":
+            code_part, _, comment = ran.partition(" #")
+            ran = f"{code_part} -w '\\n[http %{{http_code}}]'" + (f" #{comment}" if comment else "")
+        t0 = time.time()
+        done = subprocess.run(["bash", "-c", ran], cwd=self.workdir, env=self.env(),
+                              capture_output=True, text=True, timeout=self.timeout_s)  # fmt: skip
+        result = Ran(command, ran, done.returncode, done.stdout, done.stderr, time.time() - t0)
+        self.history.append(result)
+        ids = JOB_ID.findall(done.stdout)
+        if ids:
+            self.last_id = ids[-1]
+        found = RUN_DIR.search(done.stdout)
+        if found:
+            self.run_dir = found["dir"]
+        return result
+
+    def run_python(self, source: str) -> Ran:
+        """A python block of a page, run as a script in the scratch folder."""
+        script = source.replace("127.0.0.1:8000", f"127.0.0.1:{self.port}")
+        script = script.replace("127.0.0.1:50051", f"127.0.0.1:{self.grpc_port}")
+        t0 = time.time()
+        done = subprocess.run(["uv", "run", "python", "-"], input=script, cwd=self.workdir,
+                              env=self.env(), capture_output=True, text=True, timeout=self.timeout_s)  # fmt: skip
+        result = Ran(source.strip().splitlines()[0], script, done.returncode, done.stdout,
+                     done.stderr, time.time() - t0)  # fmt: skip
+        self.history.append(result)
+        return result
+
+    def start_server(self, command: str) -> None:
+        assert self.server is None, "the journey starts the service twice"
+        self.server = subprocess.Popen(["bash", "-c", f"exec {command.partition(' #')[0]}"],
+                                       cwd=self.workdir, env=self.env(), stdout=subprocess.PIPE,
+                                       stderr=subprocess.STDOUT, text=True, start_new_session=True)  # fmt: skip
+        deadline = time.time() + 120
+        while True:
+            try:
+                if httpx.get(f"{self.url}/healthz", timeout=2).status_code == 200:
+                    return
+            except httpx.HTTPError:
+                pass
+            if self.server.poll() is not None or time.time() > deadline:
+                out = self.server.stdout.read() if self.server.poll() is not None else ""
+                raise AssertionError(f"`{command}` did not come up on {self.url}:\n{out}")
+            time.sleep(0.3)
+
+    def stop(self) -> str:
+        """Stop the service (SIGTERM, as Ctrl-C would); its output."""
+        if self.server is None:
+            return ""
+        server, self.server = self.server, None
+        os.killpg(server.pid, signal.SIGTERM)
+        try:
+            out, _ = server.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            os.killpg(server.pid, signal.SIGKILL)
+            out, _ = server.communicate()
+        return out or ""
+
+
+def http_status(ran: Ran) -> int:
+    found = STATUS.search(ran.stdout)
+    assert found, f"no status written by curl:\n{ran}"
+    return int(found["code"])

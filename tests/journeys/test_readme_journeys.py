@@ -1,0 +1,194 @@
+"""The journeys a new user walks, read out of README.md (see ``readme.py``) and run as written,
+with the demo preset's policy trained for real: a policy that learned, not a random or an oracle
+agent (evaluation of a good policy once failed while every part's own test passed).
+
+- quick start: ``quicknav serve``; demo train with ``--follow``; eval of that job by its short
+  id, held-out success >= 0.9; its artifacts listed and downloaded; the curl examples, each with
+  its HTTP status; no command prints a warning, no job carries one.
+- in-process: ``quicknav env demo``, ``quicknav train --preset demo``, ``quicknav eval RUN_DIR``.
+
+The long runs are ``slow`` (CI runs them after the fast suite); that README still marks its
+journeys, and that the runner knows how to run every line of them, is checked in the fast suite.
+"""
+
+from __future__ import annotations
+
+import json
+import shlex
+
+import httpx
+import pytest
+
+from quicknav_core.config.resolve import resolve_train
+from tests.journeys.readme import Runner, doc_files, http_status, journey, journey_blocks
+from tests.service.conftest import free_port
+
+JOURNEYS = ("quickstart", "in-process")
+
+
+def walk(runner: Runner, name: str) -> list:
+    """Run a journey's blocks in reading order: shell lines one by one, python blocks whole."""
+    ran = []
+    for block in journey(name):
+        if block.language == "python":
+            ran.append((block, None, runner.run_python(block.source)))
+        else:
+            ran += [(block, c, runner.run(c)) for c in block.commands]
+    return [r for r in ran if r[2] is not None]
+
+
+def commands(name: str) -> list[str]:
+    """The shell lines of a journey (its python blocks are run whole, by ``run_journey``)."""
+    return [c for block in journey(name) if block.language == "bash" for c in block.commands]
+
+
+# --------------------------------------------------------------------------- fast: README still says it
+def test_readme__marks_both_journeys_and_each_line_is_one_the_runner_runs():
+    found = {b.journey for b in journey_blocks()}
+    assert set(JOURNEYS) <= found, f"README.md lost a journey marker: found {sorted(found)}"
+    for name in found:
+        for command in commands(name):
+            words = shlex.split(command, comments=True)
+            assert words[:2] == ["uv", "sync"] or words[:3] == ["uv", "run", "quicknav"] or (
+                words[0] == "curl"), f"journey {name}: the runner cannot run {command!r}"  # fmt: skip
+    quick = commands("quickstart")
+    assert any("quicknav serve" in c for c in quick)
+    assert any("jobs submit train --preset demo" in c and "--follow" in c for c in quick)
+    assert any("jobs submit eval" in c and "<id>" in c for c in quick)
+    assert any(c.startswith("curl") for c in quick)
+    local = commands("in-process")
+    assert any("quicknav train --preset demo" in c for c in local)
+    assert any("quicknav eval <run-dir>" in c for c in local)
+    assert any("quicknav env demo" in c for c in local)
+
+
+def test_readme__journey_blocks_are_found_in_reading_order(tmp_path):
+    page = tmp_path / "page.md"
+    page.write_text("intro\n\n<!-- journey: a -->\n```bash\nuv run quicknav env demo \\\n"
+                    "  --out x   # drawn\n# a comment\n\n```\n\n```bash\nuv run quicknav nope\n```\n\n"
+                    "<!-- journey: b -->\n```bash\ncurl -s localhost:8000/healthz\n```\n")  # fmt: skip
+    blocks = journey_blocks([page])
+    assert [(b.journey, b.line, b.commands) for b in blocks] == [
+        ("a", 4, ["uv run quicknav env demo    --out x   # drawn"]),
+        ("b", 16, ["curl -s localhost:8000/healthz"]),
+    ]
+    assert doc_files()[0].name == "README.md"
+
+
+# --------------------------------------------------------------------------- slow: walked
+@pytest.fixture
+def runner(tmp_path):
+    r = Runner(workdir=tmp_path, port=free_port(), grpc_port=free_port())
+    yield r
+    r.stop()
+
+
+def ok(ran) -> None:
+    assert ran.code == 0, str(ran)
+    assert "warning" not in ran.stderr.lower(), str(ran)
+
+
+@pytest.mark.slow  # serves, trains the demo twice (CLI, then curl) and evaluates: ~4 min on 2 cores
+def test_journey__quick_start(runner):
+    evaluated = train_id = None
+    for command in commands("quickstart"):
+        ran = runner.run(command)
+        if ran is None:
+            continue
+        if command.startswith("curl"):
+            assert ran.code == 0, str(ran)
+            status = http_status(ran)
+            if "-X POST" in command:
+                assert status == 202, str(ran)
+                assert json.loads(ran.stdout.rsplit("\n", 1)[0])["status"] == "queued", str(ran)
+            else:
+                assert status == 200, str(ran)
+            if "/events" in command:  # the stream ran to the job's end, and the job learned
+                assert "event: started" in ran.stdout and "event: succeeded" in ran.stdout, str(ran)
+            continue
+        ok(ran)
+        if "jobs submit train" in command:
+            assert f"job {runner.last_id}: succeeded" in ran.stdout, str(ran)
+            train_id = runner.last_id
+            trained = httpx.get(f"{runner.url}/jobs/{train_id}").json()
+            # the preset runs what it names: no "not a whole number of updates" note, no warning
+            assert "note" not in trained["result"] and trained["warnings"] == [], trained["result"]
+            assert trained["result"]["env_steps"] == trained["config"]["total_steps"]
+        elif "jobs submit eval" in command:
+            evaluated = runner.last_id
+            assert evaluated != train_id and f"job {evaluated}: succeeded" in ran.stdout, str(ran)
+            job = httpx.get(f"{runner.url}/jobs/{evaluated}").json()
+            assert job["config"]["source"] == train_id  # the short id found the train job
+            success = job["result"]["metrics"]["success_rate"]
+            assert success >= 0.9, f"the demo policy did not learn: held-out success {success}"
+            assert job["warnings"] == [] and job["result"]["warnings"] == []
+        elif "jobs artifacts" in command:
+            listed = httpx.get(f"{runner.url}/jobs/{runner.last_id}/artifacts").json()["artifacts"]
+            names = {f["name"] for f in listed}
+            for name in ("eval.json", "replay.json", "trajectories.png", "difficulty.png"):
+                assert name in names and name in ran.stdout, (name, str(ran))
+        elif "jobs download" in command:
+            out = shlex.split(command, comments=True)[-1]
+            served = httpx.get(f"{runner.url}/jobs/{evaluated}/artifacts/eval.json").content
+            assert (runner.workdir / out).read_bytes() == served
+            assert json.loads(served)["metrics"]["episodes"] == 100
+    assert evaluated is not None, "the quick start has no eval"
+    ran_commands = [r.command for r in runner.history]
+    assert len(ran_commands) == len(commands("quickstart")) - 2  # all but `uv sync` and `serve`
+    log = runner.stop()
+    assert "Traceback" not in log, log[-4000:]
+
+
+@pytest.mark.slow  # trains the demo in-process and evaluates it: ~2 min on 2 cores
+def test_journey__in_process(runner):
+    for command in commands("in-process"):
+        ran = runner.run(command)
+        if ran is None:
+            continue
+        ok(ran)
+        if "quicknav env demo" in command:
+            out = runner.workdir / shlex.split(command, comments=True)[-1]
+            assert (out / "demo.png").stat().st_size > 1000 and (out / "demo.gif").exists()
+        elif "quicknav train" in command:
+            assert runner.run_dir, f"train printed no run folder:\n{ran}"
+            assert (runner.workdir / runner.run_dir / "learning_curve.png").exists()
+        elif "quicknav eval" in command:
+            result = json.loads((runner.workdir / runner.run_dir / "eval" / "eval.json").read_text())
+            success = result["metrics"]["success_rate"]
+            assert success >= 0.9, f"the demo policy did not learn: held-out success {success}"
+            assert result["warnings"] == [] and "success rate" in ran.stdout
+    assert runner.server is None  # the in-process journey needs no service
+
+
+@pytest.mark.slow  # the service pages (docs/service.md, sdk.md, grpc.md) on one live server: ~3 min
+def test_journey__the_service_pages_curl_sdk_and_grpc(runner):
+    runner.start_server("uv run quicknav serve")
+    for _, command, ran in walk(runner, "service-http"):
+        assert ran.code == 0, str(ran)
+        status = http_status(ran)
+        body = ran.stdout.rsplit("\n", 1)[0]
+        if "-X POST" in command:
+            assert status == 202 and json.loads(body)["status"] == "queued", str(ran)
+        else:
+            assert status == 200, str(ran)
+        if "/events" in command:
+            assert "event: started" in ran.stdout and "event: succeeded" in ran.stdout, str(ran)
+        if "/artifacts" in command:
+            names = {a["name"] for a in json.loads(body)["artifacts"]}
+            assert {"config.json", "metrics.jsonl", "learning_curve.png"} <= names, names
+    evaluated = runner.last_id
+    finished = httpx.get(f"{runner.url}/jobs/{evaluated}?wait=0").json()
+    assert finished["kind"] == "eval", finished
+
+    (sdk,) = walk(runner, "sdk")
+    assert sdk[2].code == 0, str(sdk[2])
+    printed = sdk[2].stdout.strip().splitlines()
+    assert printed[0].startswith("succeeded"), str(sdk[2])
+    grid = resolve_train({"preset": "demo"}).env.grid_size
+    assert printed[-1] == f"{grid} True", str(sdk[2])  # the demo's grid; the eval ran the job's env
+    assert (runner.workdir / "curve.png").stat().st_size > 1000
+
+    (grpc,) = walk(runner, "grpc")
+    assert grpc[2].code == 0, str(grpc[2])
+    log = runner.stop()
+    assert "Traceback" not in log, log[-4000:]
