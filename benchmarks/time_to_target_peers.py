@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import statistics
 import sys
@@ -160,7 +161,7 @@ def main() -> None:
     import torch
 
     data = json.loads(args.out.read_text()) if args.out.exists() else {"rows": {}}
-    data["machine"] = {"cpu": _cpu(), "python": platform.python_version(), "torch": torch.__version__,
+    data["machine"] = {"cpu": _cpu(), "cores": os.cpu_count(), "python": platform.python_version(), "torch": torch.__version__,
                        "stable_baselines3": stable_baselines3.__version__,
                        "sb3_contrib": sb3_contrib.__version__,
                        "torch_threads": args.torch_threads}  # fmt: skip

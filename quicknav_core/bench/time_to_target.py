@@ -228,11 +228,18 @@ def _line(entry: dict[str, Any]) -> str:
     return f"{entry['label']}: warm {warm}; cold {cold_s} (cap {entry['cap_s'] / 60:.0f} min)"
 
 
+def _machine_words(info: dict[str, Any]) -> str:
+    """A results file's machine in the words of ``machine_line`` (peers record no JAX backend)."""
+    words = f"{info.get('cpu', '?')}, {info.get('cores', '?')} cores"
+    return f"{words}, {info['jax_backend']}" if "jax_backend" in info else f"{words}, cpu"
+
+
 def report(results: Path, peers: Path | None = None) -> str:
     """The table: each row's warm median (min-max) and cold time to target, with its peer beside
     it and the ratio (peer / QuickNav), as Markdown."""
     data = json.loads(results.read_text()) if results.exists() else {"rows": {}}
-    peer_rows = {}
+    peer_rows: dict[str, Any] = {}
+    peer_data: dict[str, Any] = {}
     if peers is not None and peers.exists():
         peer_data = json.loads(peers.read_text())
         peer_rows = {v["beside"]: v for v in peer_data["rows"].values()}
@@ -246,6 +253,14 @@ def report(results: Path, peers: Path | None = None) -> str:
                 f" (fastest {fmt(summary['min_s'])})" if summary["min_s"] is not None else "")
         return f"{fmt(summary['median_s'])} ({fmt(summary['min_s'])}–{fmt(summary['max_s'])})"
 
+    # every figure names the machine it was measured on: rows recorded in other sittings keep theirs
+    machines: list[str] = []
+
+    def mark(machine: str) -> str:
+        if machine not in machines:
+            machines.append(machine)
+        return f"[{chr(ord('A') + machines.index(machine))}]"
+
     lines = ["| row | warm: median (min–max) | cold | peer: median (min–max) | peer / QuickNav |",
              "|---|---|---|---|---|"]  # fmt: skip
     for row in ROWS:
@@ -253,21 +268,25 @@ def report(results: Path, peers: Path | None = None) -> str:
         if entry is None:
             continue
         s, cold = entry["warm_summary"], entry["cold"]
+        ours = mark(cold.get("machine") or _machine_words(data.get("machine", {})))
         peer = peer_rows.get(row.key)
         peer_cell, ratio = "", ""
         if peer is not None:
             ps = peer["summary"]
-            peer_cell = f"{peer['label']}: {spread(ps)}"
+            theirs = mark(_machine_words(peer_data.get("machine", {})))
+            cap = peer["runs"][0]["cap_s"] if peer["runs"] else None
+            capped = f", cap {fmt(cap)} per run" if cap and ps["reached"] < ps["runs"] else ""
+            peer_cell = f"{peer['label']}: {spread(ps)}{capped} {theirs}"
             if ps["median_s"] is not None and s["median_s"]:
                 ratio = f"{ps['median_s'] / s['median_s']:.1f}x"
             elif s["median_s"] and ps["reached"] < ps["runs"]:
                 ratio = f"> {ps['runs'] and peer['runs'][0]['cap_s'] / s['median_s']:.0f}x (peer capped)"
-        lines.append(f"| {entry['label']} | {spread(s)} | "
+        lines.append(f"| {entry['label']} {ours} | {spread(s)} | "
                      f"{fmt(cold['time_to_target_s']) if cold['reached'] else 'not reached'} | "
                      f"{peer_cell} | {ratio} |")  # fmt: skip
-    machine = data.get("machine", {})
     lines.append("")
-    lines.append(f"Machine: {machine.get('cpu', '?')}, {machine.get('cores', '?')} cores, CPU only;"
-                 f" held-out success >= {TARGET:.0%} on {EVAL_EPISODES} test-bank episodes;"
-                 " caps: 10 min per QuickNav run, 30 min per peer run.")  # fmt: skip
+    lines.append("Machines: " + "; ".join(f"[{chr(ord('A') + i)}] {m}"
+                                          for i, m in enumerate(machines)) + ".")  # fmt: skip
+    lines.append(f"Held-out success >= {TARGET:.0%} on {EVAL_EPISODES} test-bank episodes;"
+                 " caps: 10 min per QuickNav run, as stated per peer run.")  # fmt: skip
     return "\n".join(lines)

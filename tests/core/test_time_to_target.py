@@ -34,7 +34,7 @@ def test_report__each_row_beside_its_peer_with_the_ratio(tmp_path):
                 "warm_summary": ttt.summarize([_run(True, 10.0), _run(True, 12.0), _run(True, 11.0)])},
         "lstm": {"label": "PPO + LSTM", "cap_s": 600, "cold": _run(False, None),
                  "warm_summary": ttt.summarize([_run(False, None)] * 3)}}}  # fmt: skip
-    peers = {"rows": {
+    peers = {"machine": {"cpu": "Peer CPU", "cores": 2}, "rows": {
         "ppo": {"label": "SB3 PPO", "beside": "ppo", "runs": [_run(True, 55.0, 1800)] * 3,
                 "summary": ttt.summarize([_run(True, 55.0), _run(True, 44.0), _run(True, 66.0)])},
         "lstm": {"label": "RecurrentPPO", "beside": "lstm", "runs": [_run(False, None, 1800)] * 3,
@@ -47,7 +47,9 @@ def test_report__each_row_beside_its_peer_with_the_ratio(tmp_path):
     assert ppo.rstrip(" |").endswith("5.0x")
     lstm = next(line for line in table.splitlines() if line.startswith("| PPO + LSTM"))
     assert "0/3 seeds reached 90 %" in lstm and "not reached" in lstm
-    assert "Test CPU" in table
+    # each figure names the machine it was measured on
+    assert "[A] Test CPU, 2 cores" in table and "[B] Peer CPU, 2 cores" in table
+    assert "[A]" in ppo and "[B]" in ppo and "cap 30.0 min per run" in lstm
 
 
 @pytest.mark.slow  # trains a small PPO until it reaches the target or a minute: ~20 s
