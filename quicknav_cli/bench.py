@@ -299,6 +299,11 @@ def bench_time_to_target(
     report_only: Annotated[
         bool, typer.Option("--report", help="Only print the table of what is recorded (and the peers').")
     ] = False,
+    write_to: Annotated[
+        list[Path] | None,
+        typer.Option("--write-to", help="Also put the table between the time-to-target markers of"
+                     " these Markdown pages (README.md, docs/performance.md)."),
+    ] = None,
 ) -> None:
     """Wall-clock time until held-out success reaches 90 %, compile included, cold and warm cache."""
     from quicknav_core.bench import time_to_target as ttt
@@ -308,5 +313,11 @@ def bench_time_to_target(
         fail(f"--row {bad[0]!r}: allowed values are {', '.join(ttt.ROW_KEYS)}")
     if not report_only:
         ttt.run_bench(row, seeds, out, scale, say=lambda m: console.print(m, highlight=False))
-    console.print(ttt.report(out / "time_to_target.json", out / "time_to_target_peers.json"),
-                  highlight=False, markup=False, soft_wrap=True)  # fmt: skip
+    table = ttt.report(out / "time_to_target.json", out / "time_to_target_peers.json")
+    console.print(table, highlight=False, markup=False, soft_wrap=True)
+    for page in write_to or []:
+        try:
+            ttt.write_between_markers(page, table)
+        except (OSError, ValueError) as e:
+            fail(f"--write-to: {e}")
+        console.print(f"wrote the table into {page}")

@@ -19,7 +19,7 @@ from typing import Annotated
 import typer
 from typer.core import TyperGroup
 
-from quicknav_cli import bench, env, jobs, serve, sweep, train
+from quicknav_cli import bench, env, export, jobs, serve, sweep, train
 from quicknav_cli import eval as eval_
 from quicknav_cli.common import fail
 
@@ -90,6 +90,7 @@ app.add_typer(env.app, name="env")
 app.command("train")(train.train)
 app.command("presets")(train.presets)
 app.command("eval")(eval_.eval_cmd)
+app.command("export")(export.export_cmd)
 app.command("sweep")(sweep.sweep)
 app.add_typer(bench.app, name="bench")
 app.command("serve")(serve.serve)

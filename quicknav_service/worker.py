@@ -71,6 +71,25 @@ def kept(job_dir: Path) -> str:
     return "kept: " + (", ".join(parts) if parts else "nothing (no checkpoint yet)")
 
 
+
+def export_policy(run_dir: Path, provenance: dict[str, Any], trainer=None) -> list[str]:
+    """Write a finished train job's ``policy.onnx`` and ``policy.json`` beside its checkpoint; a
+    failure is a warning naming the files, never a failed job (the checkpoint is the result)."""
+    try:
+        from quicknav_core.export import export_run
+
+        export_run(run_dir, run_dir, provenance=provenance, trainer=trainer)
+    except Exception as e:  # any failure of the export is reported, none is fatal
+        log.warning("job %s: policy export failed", provenance.get("job_id"), exc_info=True)
+        return [f"policy.onnx, policy.json: not exported ({type(e).__name__}: {e})"[:500]]
+    return []
+
+
+def record_held_out(run_dir: Path, metrics: dict, eval_job_id: str, env: dict) -> None:
+    from quicknav_core.export import record_held_out as record
+
+    record(run_dir, metrics, {"eval_job_id": eval_job_id}, env)
+
 class Worker:
     def __init__(self, store, settings: Settings, worker_id: str | None = None):
         self.store = store
@@ -335,6 +354,10 @@ class Worker:
         result = {"env_steps": summary["env_steps"], "total_steps": summary["total_steps"],
                   "chunks_done": summary["chunks_done"], "final": summary["final"],
                   "warnings": summary["warnings"]}  # fmt: skip
+        if stop_reason.get("why", "done") == "done":
+            provenance = {"job_id": job.id, "preset": job.request.get("preset")}
+            exported = export_policy(run_dir, provenance, self.trainer_for(config))
+            result["warnings"] = [*result["warnings"], *exported]
         if summary["total_steps"] != config.total_steps:
             result["note"] = (
                 f"total_steps={config.total_steps:,} is not a whole number of updates"
@@ -365,6 +388,10 @@ class Worker:
         except EvalStopped as e:
             return stop_reason.get("why", "cancelled"), {"episodes_done": e.done, "episodes": e.total}
         self._report(job, 1.0, result["metrics"])
+        if run_dir is not None and cfg.split == "test" and cfg.deterministic:
+            # the exported policy's manifest names its held-out success (in the env it trained in)
+            self._best_effort(record_held_out, run_dir, result["metrics"], job.id,
+                              cfg.env.model_dump(mode="json"))  # fmt: skip
         return "done", {"agent": result["agent"], "metrics": result["metrics"],
                         "warnings": result["warnings"]}  # fmt: skip
 

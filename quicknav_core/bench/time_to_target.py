@@ -228,6 +228,26 @@ def _line(entry: dict[str, Any]) -> str:
     return f"{entry['label']}: warm {warm}; cold {cold_s} (cap {entry['cap_s'] / 60:.0f} min)"
 
 
+MARKERS = ("<!-- time-to-target:start -->", "<!-- time-to-target:end -->")
+
+
+def between_markers(markdown: str) -> str | None:
+    """The text a page holds between the time-to-target markers, or None without them."""
+    start, end = markdown.find(MARKERS[0]), markdown.find(MARKERS[1])
+    if start < 0 or end < start:
+        return None
+    return markdown[start + len(MARKERS[0]):end].strip()
+
+
+def write_between_markers(page: Path, table: str) -> None:
+    """Put ``table`` between the markers of ``page`` (README.md, docs/performance.md)."""
+    text = page.read_text()
+    if between_markers(text) is None:
+        raise ValueError(f"{page}: no {MARKERS[0]} ... {MARKERS[1]} block to write the table into")
+    start, end = text.find(MARKERS[0]) + len(MARKERS[0]), text.find(MARKERS[1])
+    page.write_text(f"{text[:start]}\n{table.strip()}\n{text[end:]}")
+
+
 def _machine_words(info: dict[str, Any]) -> str:
     """A results file's machine in the words of ``machine_line`` (peers record no JAX backend)."""
     words = f"{info.get('cpu', '?')}, {info.get('cores', '?')} cores"

@@ -24,6 +24,8 @@ def reset_where(start: jax.Array, fresh, carry):
 
     def pick(f, c):
         mask = start.reshape(start.shape + (1,) * (c.ndim - start.ndim))
+        if c.dtype == jnp.bool_:  # as logic: a select of booleans has no ONNX Runtime kernel
+            return (mask & f) | (~mask & c)
         return jnp.where(mask, f, c)
 
     return jax.tree.map(pick, fresh, carry)

@@ -93,11 +93,13 @@ class Policy:
 
 
 def _ppo_mean(module, obs):
-    return module._action_dist(obs).loc
+    # the Gaussian's mean, computed as rejax's ``_action_dist`` does without building the
+    # distribution (distrax objects cannot be traced for export)
+    return module.action_mean(module.features(obs))
 
 
 def _sac_mode(module, obs):
-    return module.action_loc + jnp.tanh(module._action_dist(obs).loc) * module.action_scale
+    return module.action_loc + jnp.tanh(module.action_mean(module.features(obs))) * module.action_scale
 
 
 # --------------------------------------------------------------------------- base

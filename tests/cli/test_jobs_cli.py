@@ -315,3 +315,24 @@ def test_errors__set_with_a_space_says_to_write_key_equals_value(args):
 def test_version__prints_the_packages_version():
     r = cli("--version")
     assert r.exit_code == 0 and r.stdout.strip() == f"quicknav {package_version('quicknav')}"
+
+
+# --------------------------------------------------------------------------- export
+def test_export__job_downloads_the_policy_and_its_manifest(service, tmp_path):
+    out = tmp_path / "policy"
+    ran = cli("export", "--job", JOB_ID, "--out", str(out))
+    assert ran.exit_code == 0, ran.output
+    assert (out / "policy.onnx").read_bytes() == (out / "policy.json").read_bytes() == b"artifact bytes"
+    fetched = [r.url.path for r in service.requests if r.method == "GET"]
+    assert f"/jobs/{JOB_ID}/artifacts/policy.onnx" in fetched and f"/jobs/{JOB_ID}/artifacts/policy.json" in fetched
+
+
+def test_export__bad_arguments_say_what_is_allowed(tmp_path):
+    assert "give either a run folder or --job ID" in cli("export").output
+    assert "give either a run folder or --job ID" in cli("export", str(tmp_path), "--job", "x").output
+    bad = cli("export", str(tmp_path), "--format", "tflite")
+    assert bad.exit_code != 0 and "--format 'tflite': allowed values are onnx" in bad.output
+    missing = cli("export", str(tmp_path / "nope"))
+    assert missing.exit_code != 0 and "does not exist" in missing.output
+    empty = cli("export", str(tmp_path))
+    assert empty.exit_code != 0 and "is not a run folder: no config.json" in empty.output

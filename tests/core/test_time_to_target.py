@@ -67,3 +67,26 @@ def test_run__the_clock_counts_training_not_evaluations(tmp_path):
         assert cold.time_to_target_s == pytest.approx(times[-1], abs=1e-3)
         assert cold.evaluations[-1].success >= 0.9
         assert all(e.success < 0.9 for e in cold.evaluations[:-1])
+
+
+def test_pages__readme_and_the_performance_page_show_the_recorded_table():
+    """README's and docs/performance.md's tables are what the recorded results say (written there
+    by `quicknav bench time-to-target --report --write-to PAGE`), so the two cannot drift."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    results = root / "benchmarks/results"
+    table = ttt.report(results / "time_to_target.json", results / "time_to_target_peers.json")
+    for page in ("README.md", "docs/performance.md"):
+        assert ttt.between_markers((root / page).read_text()) == table.strip(), page
+
+
+def test_pages__writing_the_table_keeps_the_rest_of_the_page(tmp_path):
+    page = tmp_path / "page.md"
+    page.write_text(f"# Title\n\n{ttt.MARKERS[0]}\nold\n{ttt.MARKERS[1]}\n\nafter\n")
+    ttt.write_between_markers(page, "| new |")
+    assert page.read_text() == f"# Title\n\n{ttt.MARKERS[0]}\n| new |\n{ttt.MARKERS[1]}\n\nafter\n"
+    other = tmp_path / "other.md"
+    other.write_text("no markers")
+    with pytest.raises(ValueError, match=r"other\.md: no <!-- time-to-target:start -->"):
+        ttt.write_between_markers(other, "x")

@@ -88,6 +88,27 @@ def ok(ran) -> None:
     assert "warning" not in ran.stderr.lower(), str(ran)
 
 
+def assert_policy_folder(folder, held_out: float | None) -> None:
+    """policy.onnx answers a batch of observations with actions in [-1, 1] (onnxruntime only), and
+    policy.json describes it; with ``held_out``, the manifest's held-out success is at least that."""
+    import numpy as np
+    import onnxruntime as ort
+
+    doc = json.loads((folder / "policy.json").read_text())
+    session = ort.InferenceSession(str(folder / "policy.onnx"), providers=["CPUExecutionProvider"])
+    obs = np.random.default_rng(0).uniform(0, 1, (5, doc["observation"]["size"])).astype(np.float32)
+    feed = {"obs": obs}
+    if doc["recurrent"]:
+        feed["start"] = np.ones(5, bool)
+        feed.update({s["input"]: np.full([5, *s["shape"][1:]], s["initial"], s["dtype"]) for s in doc["state"]})
+    action = session.run(["action"], feed)[0]
+    assert action.shape == (5, 2) and np.all(np.abs(action) <= 1)
+    if held_out is None:
+        assert doc["held_out"] is None  # exported before any evaluation
+    else:
+        assert doc["held_out"]["success_rate"] >= held_out, doc["held_out"]
+
+
 @pytest.mark.slow  # serves, trains the demo twice (CLI, then curl) and evaluates: ~4 min on 2 cores
 def test_journey__quick_start(runner):
     evaluated = train_id = None
@@ -114,6 +135,11 @@ def test_journey__quick_start(runner):
             # the preset runs what it names: no "not a whole number of updates" note, no warning
             assert "note" not in trained["result"] and trained["warnings"] == [], trained["result"]
             assert trained["result"]["env_steps"] == trained["config"]["total_steps"]
+        elif "quicknav export --job" in command:
+            # the train job's policy, exported by its worker, runs in onnxruntime as the manifest says
+            out = runner.workdir / shlex.split(command, comments=True)[-1]
+            assert_policy_folder(out, held_out=None)
+            assert json.loads((out / "policy.json").read_text())["provenance"]["job_id"] == train_id
         elif "jobs submit eval" in command:
             evaluated = runner.last_id
             assert evaluated != train_id and f"job {evaluated}: succeeded" in ran.stdout, str(ran)
@@ -122,6 +148,10 @@ def test_journey__quick_start(runner):
             success = job["result"]["metrics"]["success_rate"]
             assert success >= 0.9, f"the demo policy did not learn: held-out success {success}"
             assert job["warnings"] == [] and job["result"]["warnings"] == []
+            # the train job's exported policy now names this held-out success
+            manifest = httpx.get(f"{runner.url}/jobs/{train_id}/artifacts/policy.json").json()
+            assert manifest["held_out"]["eval_job_id"] == evaluated
+            assert manifest["held_out"]["success_rate"] == success
         elif "jobs artifacts" in command:
             listed = httpx.get(f"{runner.url}/jobs/{runner.last_id}/artifacts").json()["artifacts"]
             names = {f["name"] for f in listed}
@@ -157,6 +187,10 @@ def test_journey__in_process(runner):
             success = result["metrics"]["success_rate"]
             assert success >= 0.9, f"the demo policy did not learn: held-out success {success}"
             assert result["warnings"] == [] and "success rate" in ran.stdout
+        elif "quicknav export" in command:
+            out = runner.workdir / shlex.split(command, comments=True)[-1]
+            assert_policy_folder(out, held_out=0.9)
+            assert "held-out success" in ran.stdout, str(ran)
     assert runner.server is None  # the in-process journey needs no service
 
 
@@ -187,6 +221,7 @@ def test_journey__the_service_pages_curl_sdk_and_grpc(runner):
     grid = resolve_train({"preset": "demo"}).env.grid_size
     assert printed[-1] == f"{grid} True", str(sdk[2])  # the demo's grid; the eval ran the job's env
     assert (runner.workdir / "curve.png").stat().st_size > 1000
+    assert_policy_folder(runner.workdir / "policy", held_out=None)  # download_policy
 
     (grpc,) = walk(runner, "grpc")
     assert grpc[2].code == 0, str(grpc[2])

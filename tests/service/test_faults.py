@@ -377,6 +377,7 @@ def test_pictures_that_fail__jobs_succeed_with_their_numbers_and_a_warning_for_e
         files = {a["name"] for a in httpx.get(f"{live.url}/jobs/{train['id']}/artifacts").json()["artifacts"]}
         assert "metrics.jsonl" in files and "learning_curve.png" not in files
         assert any(f.startswith("checkpoint/") for f in files), files
+        assert {"policy.onnx", "policy.json"} <= files  # the worker exported the policy
 
         r = httpx.post(f"{live.url}/jobs/eval", json={"job_id": train["id"], "episodes": 6})
         assert r.status_code == 202, r.text
@@ -391,4 +392,32 @@ def test_pictures_that_fail__jobs_succeed_with_their_numbers_and_a_warning_for_e
         assert "NaN" not in raw  # standard JSON: an undefined mean (no successes yet) is null
         stored = json.loads(raw)
         assert stored["metrics"] == ev["result"]["metrics"] and stored["warnings"] == ev["warnings"]
+        # the policy's manifest now names this held-out evaluation
+        manifest = httpx.get(f"{live.url}/jobs/{train['id']}/artifacts/policy.json").json()
+        assert manifest["held_out"]["eval_job_id"] == ev["id"]
+        assert manifest["held_out"]["success_rate"] == ev["result"]["metrics"]["success_rate"]
+        worker.shutdown.set()
+
+
+def test_export_that_fails__the_train_job_succeeds_with_a_warning(tmp_path, monkeypatch):
+    from quicknav_core import export
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("the exported policy differs from the JAX one by 1.0e-01 (> 1e-5)")
+
+    monkeypatch.setattr(export, "export_run", broken)
+    with LiveServer(tmp_path) as live:
+        worker, _ = live.run_worker_in_background()
+        ended = ("failed", "succeeded", "cancelled")
+        r = httpx.post(f"{live.url}/jobs/train", json={"preset": "demo", "overrides": TINY})
+        train = wait_for(lambda: (j := job_of(live, r.json()["id"]))["status"] in ended and j,
+                         300, "the train job")  # fmt: skip
+        assert train["status"] == "succeeded", train["error"]
+        assert train["result"]["env_steps"] == 1536
+        assert train["warnings"] == ["policy.onnx, policy.json: not exported (RuntimeError: the exported"
+                                     " policy differs from the JAX one by 1.0e-01 (> 1e-5))"]  # fmt: skip
+        files = {a["name"] for a in httpx.get(f"{live.url}/jobs/{train['id']}/artifacts").json()["artifacts"]}
+        assert "policy.onnx" not in files and any(f.startswith("checkpoint/") for f in files)
+        gone = httpx.get(f"{live.url}/jobs/{train['id']}/artifacts/policy.onnx")
+        assert gone.status_code == 404
         worker.shutdown.set()

@@ -249,6 +249,14 @@ def test_browser__journey_from_the_trained_job_runs_an_eval_reads_its_metrics_an
     page.goto(f"{server}/ui/jobs/{job_id}")
     page.wait_for_selector("#run-eval")
     assert page.locator("header nav a.active").all_inner_texts() == ["Jobs"]
+    # the trained policy is offered as a download, and what the link gives is the job's file
+    link = page.locator('#policy-download a[download="policy.onnx"]')
+    link.wait_for(timeout=20_000)
+    with page.expect_download() as download:
+        link.click()
+    served = httpx.get(f"{server}/jobs/{job_id}/artifacts/policy.onnx", headers=AUTH).content
+    assert Path(download.value.path()).read_bytes() == served and len(served) > 1000
+    assert page.locator('#policy-download a[download="policy.json"]').count() == 1
     # the replay test's eval is already listed, linked to its page
     first_eval = page.locator("#evals tbody tr[data-id]").first
     first_eval.wait_for()

@@ -74,6 +74,10 @@ class AsyncJob(JobFields):
         """Stream an artifact to ``out`` (a file or a folder; default: its name in the cwd)."""
         return await self._client.download(self.id, name, core.download_out(out, path))
 
+    async def download_policy(self, dest: str | Path = ".") -> Path:
+        """This train job's ``policy.onnx`` and ``policy.json`` into the folder ``dest``."""
+        return await self._client.download_policy(self.id, dest)
+
 
 class _Done(Exception):
     """The operation returned (its value travels here: an async generator cannot return one)."""
@@ -278,3 +282,13 @@ class AsyncQuickNavClient:
         """Stream a job's artifact to ``out``, a file or a folder (default: its name in the cwd),
         written whole or not at all; returns its path. ``path`` is the deprecated name of ``out``."""
         return await self._run(core.download(self._policy, job_id, name, core.download_out(out, path)))
+
+    async def download_policy(self, job_id: str, dest: str | Path = ".") -> Path:
+        """Download a train job's exported policy (``policy.onnx`` and its ``policy.json``
+        manifest) into the folder ``dest``; returns the folder. A job trained before policies were
+        exported, or whose export failed (its warnings say why), answers 404."""
+        folder = Path(dest)
+        folder.mkdir(parents=True, exist_ok=True)
+        for name in core.POLICY_FILES:
+            await self.download(job_id, name, folder / name)
+        return folder

@@ -30,6 +30,8 @@ from quicknav_client.errors import ConnectionFailed, WaitTimeout, error_class, f
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 TERMINAL_STATUSES = frozenset({"succeeded", "failed", "cancelled"})
+# a train job's exported policy: the ONNX model and its manifest (``quicknav export``)
+POLICY_FILES = ("policy.onnx", "policy.json")
 # Statuses a proxy or a restarting server answers with while the service itself is fine.
 RETRY_STATUSES = frozenset({502, 503, 504})
 SSE_READ_TIMEOUT_S = 45.0  # three of the server's 15 s keep-alive intervals

@@ -72,6 +72,10 @@ class Job(JobFields):
         """Stream an artifact to ``out`` (a file or a folder; default: its name in the cwd)."""
         return self._client.download(self.id, name, core.download_out(out, path))
 
+    def download_policy(self, dest: str | Path = ".") -> Path:
+        """This train job's ``policy.onnx`` and ``policy.json`` into the folder ``dest``."""
+        return self._client.download_policy(self.id, dest)
+
 
 class QuickNavClient:
     """Synchronous client of the QuickNav REST API (use as a context manager, or call close()).
@@ -266,3 +270,13 @@ class QuickNavClient:
         """Stream a job's artifact to ``out``, a file or a folder (default: its name in the cwd),
         written whole or not at all; returns its path. ``path`` is the deprecated name of ``out``."""
         return self._run(core.download(self._policy, job_id, name, core.download_out(out, path)))
+
+    def download_policy(self, job_id: str, dest: str | Path = ".") -> Path:
+        """Download a train job's exported policy (``policy.onnx`` and its ``policy.json``
+        manifest) into the folder ``dest``; returns the folder. A job trained before policies were
+        exported, or whose export failed (its warnings say why), answers 404."""
+        folder = Path(dest)
+        folder.mkdir(parents=True, exist_ok=True)
+        for name in core.POLICY_FILES:
+            self.download(job_id, name, folder / name)
+        return folder

@@ -352,7 +352,8 @@ function sweepSection(job, sec) {
 function artifactsSection(job, sec) {
   const list = h("table", { id: "artifacts" });
   const images = h("div", { class: "images", id: "images" });
-  sec.append(h("h2", {}, "Artifacts"), images, h("div", { style: "height:10px" }), list);
+  const policy = h("p", { id: "policy-download", hidden: true });
+  sec.append(h("h2", {}, "Artifacts"), policy, images, h("div", { style: "height:10px" }), list);
   let shown = "";
   return async () => {
     const { artifacts } = await api(`/jobs/${job.id}/artifacts`);
@@ -360,6 +361,14 @@ function artifactsSection(job, sec) {
     if (key === shown) return; // unchanged: keep the images as they are (a GIF would restart)
     shown = key;
     const url = (a) => `/jobs/${job.id}/artifacts/${a.name.split("/").map(encodeURIComponent).join("/")}`;
+    const exported = ["policy.onnx", "policy.json"].map((n) => artifacts.find((a) => a.name === n));
+    policy.hidden = !exported.every(Boolean);
+    if (!policy.hidden) {
+      // the trained policy as a file a robot runs with onnxruntime alone (docs: Exporting policies)
+      policy.replaceChildren("Trained policy, to run without QuickNav: ",
+        ...exported.flatMap((a, i) => [i ? " + " : "", h("a", { href: url(a), download: a.name }, a.name)]),
+        h("span", { class: "muted" }, ` (${exported[0].bytes.toLocaleString()} bytes; the manifest says what goes in and out)`));
+    }
     const pics = artifacts.filter((a) => /\.(png|gif)$/i.test(a.name));
     images.replaceChildren(...pics.map((a) => h("figure", {},
       h("a", { href: url(a), target: "_blank" }, h("img", { src: `${url(a)}?v=${a.bytes}`, alt: a.name })),

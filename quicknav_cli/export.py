@@ -1,0 +1,77 @@
+"""`quicknav export`: a trained policy as `policy.onnx` + `policy.json`, to run without JAX."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from quicknav_cli.common import console, enable_compilation_cache, fail
+
+
+def export_cmd(
+    run: Annotated[
+        Path | None,
+        typer.Argument(help="Run folder (or its checkpoint folder) from quicknav train."),
+    ] = None,
+    job: Annotated[
+        str | None,
+        typer.Option("--job", help="A succeeded train job of the service instead of a run folder"
+                     " (its policy.onnx and policy.json are downloaded)."),
+    ] = None,
+    fmt: Annotated[str, typer.Option("--format", help="Model format: onnx.")] = "onnx",
+    out: Annotated[Path, typer.Option("--out", help="Folder for policy.onnx and policy.json.")] = Path(
+        "policy"
+    ),
+    url: Annotated[
+        str, typer.Option(envvar="QUICKNAV_URL", help="The service's base URL (with --job).")
+    ] = "http://127.0.0.1:8000",
+    token: Annotated[
+        str | None,
+        typer.Option(envvar="QUICKNAV_API_TOKEN", help="Bearer token, if the service wants one."),
+    ] = None,
+) -> None:
+    """Export a trained policy: policy.onnx (deterministic action, recurrent state as inputs and
+    outputs, dynamic batch) and policy.json (observation layout, beam angles, action units, state,
+    env, provenance, held-out success)."""
+    if fmt != "onnx":
+        fail(f"--format {fmt!r}: allowed values are onnx")
+    if (run is None) == (job is None):
+        fail("give either a run folder or --job ID")
+    if job is not None:
+        try:
+            from quicknav_client import QuickNavClient, QuickNavError
+        except ImportError:
+            fail("the QuickNav SDK is not installed: pip install 'quicknav[service]' (or ./clients)")
+        try:
+            with QuickNavClient(url, token=token) as client:
+                folder = client.download_policy(job, out)
+        except QuickNavError as e:
+            fail(str(e), code=1)
+        console.print(f"wrote {folder}/policy.onnx and {folder}/policy.json", highlight=False)
+        return
+    try:
+        import jax2onnx  # noqa: F401
+    except ImportError:
+        fail("exporting needs the export extra: pip install 'quicknav[export]'")
+    from quicknav_core.export import export_run
+    from quicknav_core.train.run import CHECKPOINT_DIR
+
+    run_dir = run.parent if run.name == CHECKPOINT_DIR else run
+    if not run_dir.is_dir():
+        fail(f"run folder {run_dir} does not exist")
+    enable_compilation_cache()
+    try:
+        doc = export_run(run_dir, out)
+    except FileNotFoundError as e:
+        fail(str(e))
+    state = ", ".join(f"{s['input']} {s['shape']}" for s in doc["state"]) or "none"
+    held = doc["held_out"]
+    success = (f"held-out success {held['success_rate']:.2f} ({held['episodes']} episodes)"
+               if held else "no held-out evaluation yet (quicknav eval RUN_DIR, then export again)")  # fmt: skip
+    console.print(
+        f"wrote {out}/policy.onnx and {out}/policy.json: {doc['network']['kind']} policy,"
+        f" obs {doc['observation']['size']}, state: {state}; {success}",
+        highlight=False,
+    )

@@ -1,0 +1,106 @@
+"""`quicknav export`: every network kind to ONNX, held to the JAX policy by onnxruntime on 10,000
+random observations and along 20 held-out episodes driven side by side (recurrent state carried
+through whole episodes), and the manifest a robot's code reads."""
+
+from __future__ import annotations
+
+import itertools
+import json
+
+import numpy as np
+import pytest
+
+from quicknav_core import export as ex
+from quicknav_core.config import resolve_train
+from quicknav_core.train.run import load_run, train_run
+
+SMALL = {"env.grid_size": 8, "env.train_rooms": 16, "env.test_rooms": 8, "env.lidar_beams": 8}
+# (kind, preset, overrides): each trains a few updates, enough to move every parameter
+KINDS = {
+    "ppo-mlp": ("demo", {"num_envs": 16, "algorithm.num_steps": 32, "total_steps": 1024}),
+    "sac-mlp": ("paper-sac", {"num_envs": 16, "total_steps": 4096}),
+    "td3-mlp": ("paper-td3", {"num_envs": 16, "total_steps": 4096}),
+    "mlp-memory": ("paper-mlp", {"num_envs": 16, "algorithm.num_steps": 16, "total_steps": 512}),
+    "lstm": ("paper-lstm", {"num_envs": 16, "algorithm.num_steps": 16, "total_steps": 512}),
+    "gtrxl": ("paper-gtrxl", {"num_envs": 16, "algorithm.num_steps": 16, "total_steps": 512}),
+}
+
+
+@pytest.fixture(scope="module", params=list(KINDS))
+def exported(request, tmp_path_factory):
+    preset, overrides = KINDS[request.param]
+    cfg = resolve_train({"preset": preset, "overrides": {**SMALL, **overrides}})
+    run_dir = tmp_path_factory.mktemp(request.param) / "run"
+    train_run(cfg, run_dir)
+    out = run_dir.parent / "policy"
+    doc = ex.export_run(run_dir, out, provenance={"job_id": "test"})
+    config, trainer, state, _ = load_run(run_dir)
+    return request.param, config, trainer.policy(state), out, doc
+
+
+def test_export__onnx_matches_jax_on_ten_thousand_random_observations(exported):
+    kind, config, policy, out, _ = exported
+    worst = ex.check_parity(policy, out / ex.ONNX_FILE, config.env.obs_dim, samples=10_000,
+                            env_config=config.env)  # fmt: skip
+    assert worst <= 1e-5, f"{kind}: max |action or state difference| {worst:.2e}"
+
+
+def test_export__same_actions_along_twenty_held_out_episodes(exported):
+    kind, config, policy, out, _ = exported
+    r = ex.check_episodes(policy, out / ex.ONNX_FILE, config.env, episodes=20)
+    # every step of every episode, the recurrent state carried on both sides
+    assert r["max_action_diff"] <= 1e-5, (kind, r)
+    # driven alone, the ONNX model ends the episodes as the JAX policy does (success, steps);
+    # one may drift where a contact amplifies float rounding
+    assert r["same_outcome"] >= 19 and abs(r["success_jax"] - r["success_onnx"]) <= 1, (kind, r)
+
+
+def test_export__dynamic_batch_and_the_manifest_a_robot_reads(exported):
+    kind, config, policy, out, doc = exported
+    session = ex.onnx_session(out / ex.ONNX_FILE)
+    names = [i.name for i in session.get_inputs()]
+    assert names == doc["onnx"]["inputs"] and [o.name for o in session.get_outputs()] == doc["onnx"]["outputs"]
+    assert all(i.shape[0] == "B" for i in session.get_inputs())  # a dynamic batch axis
+    on_disk = json.loads((out / ex.MANIFEST_FILE).read_text())
+    assert on_disk == doc
+    # the observation layout covers every entry once, in order
+    layout = doc["observation"]["layout"]
+    edges = [s["slice"] for s in layout]
+    assert edges[0][0] == 0 and edges[-1][1] == doc["observation"]["size"] == config.env.obs_dim
+    assert all(a[1] == b[0] for a, b in itertools.pairwise(edges))
+    assert len(doc["lidar"]["beam_angles_rad"]) == config.env.lidar_beams
+    assert doc["action"]["max_wheel_speed_mps"] == config.env.max_wheel_speed
+    assert doc["provenance"]["job_id"] == "test" and doc["provenance"]["env_steps"] > 0
+    assert doc["env"] == config.env.model_dump(mode="json")
+    assert doc["recurrent"] == (kind in ("mlp-memory", "lstm", "gtrxl"))
+    # any batch size runs; a state starts from its documented initial value
+    for batch in (1, 7):
+        rng = np.random.default_rng(batch)
+        feed = {"obs": ex.random_observations(config.env, batch, seed=batch)}
+        if doc["recurrent"]:
+            feed["start"] = np.ones(batch, bool)
+            for s in doc["state"]:
+                shape = [batch, *s["shape"][1:]]
+                dtype = np.dtype(s["dtype"])
+                random = rng.random(shape) > 0.5 if dtype == np.bool_ else rng.normal(size=shape)
+                feed[s["input"]] = random.astype(dtype)
+        action, *state = session.run(None, feed)
+        assert action.shape == (batch, 2) and np.all(np.abs(action) <= 1.0)
+        if doc["recurrent"]:  # start=True: the state given was replaced by the initial one first
+            fresh = {**feed, **{s["input"]: np.full([batch, *s["shape"][1:]], s["initial"],
+                                                   np.dtype(s["dtype"])) for s in doc["state"]}}  # fmt: skip
+            again, *_ = session.run(None, fresh)
+            np.testing.assert_array_equal(action, again)
+            assert [x.shape for x in state] == [(batch, *s["shape"][1:]) for s in doc["state"]]
+
+
+def test_export__held_out_success_joins_the_manifest_only_from_the_trained_env(tmp_path):
+    env = {"grid_size": 8}
+    (tmp_path / ex.MANIFEST_FILE).write_text(json.dumps({"env": env, "held_out": None}))
+    metrics = {"episodes": 100, "success_rate": 0.97, "success_ci95": [0.9, 0.99], "spl": 0.9, "x": 1}
+    assert not ex.record_held_out(tmp_path, metrics, {"eval_job_id": "e"}, {"grid_size": 16})
+    assert json.loads((tmp_path / ex.MANIFEST_FILE).read_text())["held_out"] is None
+    assert ex.record_held_out(tmp_path, metrics, {"eval_job_id": "e"}, env)
+    held = json.loads((tmp_path / ex.MANIFEST_FILE).read_text())["held_out"]
+    assert held == {"eval_job_id": "e", "episodes": 100, "success_rate": 0.97,
+                    "success_ci95": [0.9, 0.99], "spl": 0.9}  # fmt: skip
