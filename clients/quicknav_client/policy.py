@@ -1,0 +1,189 @@
+"""A policy exported by ``quicknav export``, run with onnxruntime and NumPy only (no JAX).
+
+    from quicknav_client.policy import OnnxPolicy
+
+    policy = OnnxPolicy.load("policy")          # the folder with policy.onnx and policy.json
+    policy.reset()                              # a new episode (recurrent state back to its start)
+    left, right = policy.act(scan, pose=(x, y, theta), goal=(gx, gy))   # wheel speeds, m/s
+
+``scan`` is any planar lidar scan as robots publish it: an object or mapping with the fields of a
+ROS ``sensor_msgs/LaserScan`` (``angle_min``, ``angle_increment``, ``ranges``, ``range_min``,
+``range_max``; angles in the robot frame, counter-clockwise, 0 straight ahead; ``inf``/``NaN`` or a
+range outside [range_min, range_max] is no return), or a plain array of ranges at the policy's own
+beam angles. It is resampled onto the policy's beams (the nearest return within each beam's
+sector) and normalised as in training. The goal is not a thing a lidar sees, but in training the
+beams that crossed the goal disc reported it; ``act`` draws the goal disc (from ``goal`` and the
+trained ``goal_radius``) into the resampled scan the same way. ``pose`` and ``goal`` are in the
+room frame the policy was trained in (metres, radians).
+
+Install: ``pip install 'quicknav-client[policy]'`` (onnxruntime).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+f32 = np.float32
+
+
+@dataclass
+class LaserScan:
+    """The fields of a ROS LaserScan that the resampler reads."""
+
+    angle_min: float
+    angle_increment: float
+    ranges: Any
+    range_min: float = 0.0
+    range_max: float = math.inf
+
+
+def _field(scan: Any, name: str, default: Any = None) -> Any:
+    if isinstance(scan, Mapping):
+        return scan.get(name, default)
+    return getattr(scan, name, default)
+
+
+def resample(scan: Any, beam_angles: np.ndarray, fov_deg: float, max_range: float) -> np.ndarray:
+    """Ranges (float32, metres, ``inf`` where no return) at the policy's beams: for each beam, the
+    nearest valid return whose angle falls in the beam's sector (the half-open interval halfway to
+    its neighbours; the edge beams of a partial field of view get a sector as wide as the inner
+    ones)."""
+    beams = beam_angles.size
+    if isinstance(scan, np.ndarray | list | tuple):
+        ranges = np.asarray(scan, np.float64).reshape(-1)
+        if ranges.size != beams:
+            raise ValueError(f"scan: {ranges.size} ranges given as an array; the policy has {beams}"
+                             " beams (give a LaserScan for any other layout)")  # fmt: skip
+        angles, lo, hi = beam_angles.astype(np.float64), 0.0, math.inf
+    else:
+        ranges = np.asarray(_field(scan, "ranges"), np.float64).reshape(-1)
+        a0, inc = _field(scan, "angle_min"), _field(scan, "angle_increment")
+        if a0 is None or inc is None or not ranges.size:
+            raise ValueError("scan: needs angle_min, angle_increment and ranges (a ROS LaserScan's fields)")
+        angles = float(a0) + float(inc) * np.arange(ranges.size)
+        lo, hi = float(_field(scan, "range_min", 0.0) or 0.0), float(_field(scan, "range_max", math.inf))
+    valid = np.isfinite(ranges) & (ranges >= lo) & (ranges <= hi)
+    if fov_deg >= 360.0 or beams == 1:
+        width = 2.0 * math.pi / beams
+    else:
+        width = math.radians(fov_deg) / (beams - 1)
+    # angle of every return relative to every beam, wrapped into [-pi, pi)
+    rel = (angles[None, :] - beam_angles.astype(np.float64)[:, None] + math.pi) % (2.0 * math.pi) - math.pi
+    inside = (rel >= -width / 2) & (rel < width / 2) & valid[None, :]
+    nearest = np.where(inside, ranges[None, :], np.inf).min(axis=1)
+    return nearest.astype(f32)
+
+
+class Observer:
+    """Builds a policy's observation vector from what a robot has (a scan, a pose, a goal), as
+    the manifest describes it; no model needed."""
+
+    def __init__(self, manifest: Mapping[str, Any]):
+        env, lidar = manifest["env"], manifest["lidar"]
+        self.beam_angles = np.asarray(lidar["beam_angles_rad"], f32)
+        self.fov_deg = float(lidar["fov_deg"])
+        self.max_range = float(lidar["max_range_m"])
+        self.room_size = float(env["room_size"])
+        self.goal_radius = float(env["goal_radius"])
+        self.observe_goal = bool(env["observe_goal"])
+        self.obs_size = int(manifest["observation"]["size"])
+
+    def __call__(self, scan: Any, pose: Any, goal: Any = None) -> np.ndarray:
+        """The policy's observation vector (float32) for a scan, a pose and a goal."""
+        x, y, theta = (float(v) for v in pose)
+        if self.observe_goal and goal is None:
+            raise ValueError("goal: this policy observes its goal; give goal=(x, y) in metres")
+        b = self.beam_angles.size
+        ranges = resample(scan, self.beam_angles, self.fov_deg, self.max_range)
+        wall = np.isfinite(ranges) & (ranges <= self.max_range)
+        ranges = np.where(wall, ranges, f32(self.max_range)).astype(f32)
+        goal_hit = np.zeros(b, bool)
+        if goal is not None:
+            # each beam's ray against the goal disc, as the simulator's lidar reports it
+            c, s = f32(math.cos(theta)), f32(math.sin(theta))
+            ca, sa = np.cos(self.beam_angles), np.sin(self.beam_angles)
+            dx, dy = c * ca - s * sa, s * ca + c * sa
+            fx, fy = f32(goal[0] - x), f32(goal[1] - y)
+            proj = fx * dx + fy * dy
+            perp2 = fx * fx + fy * fy - proj * proj
+            r2 = f32(self.goal_radius) ** 2
+            half = np.sqrt(np.maximum(r2 - perp2, f32(0)))
+            meets = (perp2 <= r2) & (proj + half >= 0)
+            t_goal = np.where(meets, np.maximum(proj - half, f32(0)), np.inf)
+            goal_hit = (t_goal < np.where(wall, ranges, np.inf)) & (t_goal <= self.max_range)
+            ranges = np.where(goal_hit, t_goal, ranges).astype(f32)
+            wall &= ~goal_hit
+        room = f32(self.room_size)
+        parts = [np.asarray([x, y], f32) / room, [math.sin(theta), math.cos(theta)],
+                 ranges / f32(self.max_range), wall.astype(f32), goal_hit.astype(f32)]  # fmt: skip
+        if self.observe_goal:
+            rx, ry = goal[0] - x, goal[1] - y
+            dist = math.hypot(rx, ry)
+            if dist > 0:
+                fwd = (math.cos(theta) * rx + math.sin(theta) * ry) / dist
+                left = (math.cos(theta) * ry - math.sin(theta) * rx) / dist
+            else:
+                fwd, left = 1.0, 0.0
+            parts += [np.asarray(goal, f32) / room, [dist / self.room_size], [left], [fwd]]
+        obs = np.concatenate([np.asarray(p, f32) for p in parts]).astype(f32)
+        if obs.size != self.obs_size:
+            raise ValueError(f"built an observation of {obs.size} entries; the policy takes {self.obs_size}")
+        return obs
+
+
+class OnnxPolicy:
+    """An exported QuickNav policy: one robot, one step at a time (the model takes batches; use
+    ``session`` and the manifest directly for several)."""
+
+    def __init__(self, folder: str | Path):
+        import onnxruntime as ort
+
+        folder = Path(folder)
+        self.manifest: dict[str, Any] = json.loads((folder / "policy.json").read_text())
+        m = self.manifest
+        if m.get("format") != "quicknav-policy":
+            raise ValueError(f"{folder / 'policy.json'}: not a QuickNav policy manifest")
+        options = ort.SessionOptions()
+        options.log_severity_level = 3
+        self.session = ort.InferenceSession(str(folder / m["onnx"]["file"]), options,
+                                            providers=["CPUExecutionProvider"])  # fmt: skip
+        self.observer = Observer(m)
+        self.obs_size = self.observer.obs_size
+        self.max_wheel_speed = float(m["action"]["max_wheel_speed_mps"])
+        self.reset()
+
+    @classmethod
+    def load(cls, folder: str | Path) -> OnnxPolicy:
+        return cls(folder)
+
+    def reset(self) -> None:
+        """Start a new episode: the next ``act`` is its first step."""
+        self._start = True
+        self._state = [np.full([1, *s["shape"][1:]], s["initial"], np.dtype(s["dtype"]))
+                       for s in self.manifest["state"]]  # fmt: skip
+
+    def observation(self, scan: Any, pose: Any, goal: Any = None) -> np.ndarray:
+        """The policy's observation vector (float32) for a scan, a pose and a goal."""
+        return self.observer(scan, pose, goal)
+
+    def act(self, scan: Any, pose: Any, goal: Any = None) -> tuple[float, float]:
+        """(left, right) wheel speeds in m/s for this step (the policy's deterministic action)."""
+        return self.act_on(self.observation(scan, pose, goal))
+
+    def act_on(self, obs: np.ndarray) -> tuple[float, float]:
+        """(left, right) wheel speeds in m/s for an observation vector built as in training."""
+        feed = {"obs": np.asarray(obs, f32).reshape(1, self.obs_size)}
+        if self._state:
+            feed["start"] = np.asarray([self._start])
+            feed.update({s["input"]: v for s, v in zip(self.manifest["state"], self._state, strict=True)})
+        action, *state = self.session.run(None, feed)
+        self._state, self._start = state, False
+        left, right = (float(v) * self.max_wheel_speed for v in action[0])
+        return left, right
