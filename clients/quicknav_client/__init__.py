@@ -48,10 +48,11 @@ __all__ = [
 # --- end of the REST block (other parts: extend with `__all__ += [...]`) ---------------------
 
 # --- gRPC rollouts (rollout.py) and gymnasium adapters (gym.py, needs the `gym` extra) ----------
-from quicknav_client.rollout import RolloutClient, RolloutError, Started, Transition
+from quicknav_client.rollout import RemotePolicy, RolloutClient, RolloutError, Started, Transition
 
 __all__ += [
     "RemoteEnv",
+    "RemotePolicy",
     "RemoteVectorEnv",
     "RolloutClient",
     "RolloutError",

@@ -315,3 +315,71 @@ class RolloutClient:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+class RemotePolicy:
+    """One ``PolicyService.Act`` stream: a trained job's policy, asked by robots over gRPC.
+
+        with RemotePolicy("127.0.0.1:50051") as rp:
+            manifest = rp.load(job_id, rows=2)        # the policy.json of `quicknav export`
+            actions = rp.act(observations, start)     # float32 [rows, 2] in [-1, 1]
+
+    The server keeps each row's recurrent state for the stream (reset where ``start`` is true)
+    and batches the requests of all streams of a policy together.
+    """
+
+    def __init__(self, target: str = "127.0.0.1:50051", token: str | None = None,
+                 channel: grpc.Channel | None = None, tls: bool = False,
+                 root_certificates: bytes | None = None):  # fmt: skip
+        self._own_channel = channel is None
+        if channel is None and (tls or root_certificates is not None):
+            channel = grpc.secure_channel(target, grpc.ssl_channel_credentials(root_certificates))
+        self._channel = channel or grpc.insecure_channel(target)
+        self._outbox: queue.SimpleQueue = queue.SimpleQueue()
+        stub = pb_grpc.PolicyServiceStub(self._channel)
+        self._responses = stub.Act(self._requests(), metadata=_metadata(token))
+        self._lock = threading.Lock()
+        self.manifest: dict[str, Any] | None = None
+        self.rows = 0
+
+    def _requests(self):
+        while True:
+            msg = self._outbox.get()
+            if msg is _CLOSE:
+                return
+            yield msg
+
+    def _call(self, msg: pb.PolicyRequest) -> pb.PolicyResponse:
+        with self._lock:
+            self._outbox.put(msg)
+            try:
+                return next(self._responses)
+            except grpc.RpcError as e:
+                raise RolloutError(e.code(), e.details() or "") from None
+            except StopIteration:
+                raise RolloutError(grpc.StatusCode.UNAVAILABLE, "the server ended the stream") from None
+
+    def load(self, job_id: str, rows: int = 1) -> dict[str, Any]:
+        """Load a train job's policy for ``rows`` robots; returns its manifest."""
+        reply = self._call(pb.PolicyRequest(load=pb.LoadPolicy(job_id=job_id, rows=rows))).loaded
+        self.manifest, self.rows = json.loads(reply.manifest_json), reply.rows
+        return self.manifest
+
+    def act(self, observations: np.ndarray, start: np.ndarray | None = None) -> np.ndarray:
+        """Actions (float32 [rows, 2]) for observations (float32 [rows, obs_dim])."""
+        request = pb.ActRequest(observations=encode(np.asarray(observations, np.float32)))
+        if start is not None:
+            request.start.CopyFrom(encode(np.asarray(start, bool)))
+        reply = self._call(pb.PolicyRequest(act=request)).actions
+        return decode(reply.actions).copy()
+
+    def close(self) -> None:
+        self._outbox.put(_CLOSE)
+        if self._own_channel:
+            self._channel.close()
+
+    def __enter__(self) -> RemotePolicy:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

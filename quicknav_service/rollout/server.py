@@ -9,6 +9,7 @@ import threading
 import grpc
 from quicknav_client.proto.quicknav.v1 import rollout_pb2_grpc as pb_grpc
 
+from quicknav_service.rollout.policy import PolicyServicer
 from quicknav_service.rollout.servicer import RolloutServicer
 from quicknav_service.settings import Settings
 
@@ -16,6 +17,7 @@ log = logging.getLogger("quicknav.rollout")
 
 
 ROLLOUT_SERVICE = "quicknav.v1.RolloutService"
+POLICY_SERVICE = "quicknav.v1.PolicyService"
 
 
 def server_credentials(settings: Settings) -> grpc.ServerCredentials | None:
@@ -52,10 +54,13 @@ async def start_server(
     )
     servicer = RolloutServicer(settings)
     pb_grpc.add_RolloutServiceServicer_to_server(servicer, server)
+    # trained policies for robots (Load, then Act), on the same port, auth and limits
+    servicer.policy_servicer = PolicyServicer(settings)
+    pb_grpc.add_PolicyServiceServicer_to_server(servicer.policy_servicer, server)
     health_servicer = health.aio.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
     reflection.enable_server_reflection(
-        (ROLLOUT_SERVICE, health.SERVICE_NAME, reflection.SERVICE_NAME), server
+        (ROLLOUT_SERVICE, POLICY_SERVICE, health.SERVICE_NAME, reflection.SERVICE_NAME), server
     )
     address = f"{host or settings.host}:{settings.grpc_port if port is None else port}"
     creds = server_credentials(settings)
@@ -64,7 +69,7 @@ async def start_server(
     if bound == 0:
         raise OSError(f"cannot bind the gRPC Rollout server to {address} (QUICKNAV_GRPC_PORT)")
     await server.start()
-    for name in ("", ROLLOUT_SERVICE):
+    for name in ("", ROLLOUT_SERVICE, POLICY_SERVICE):
         await health_servicer.set(name, health_pb2.HealthCheckResponse.SERVING)
     server.quicknav_health = health_servicer  # stop() marks it NOT_SERVING first
     log.info("gRPC Rollout server on %s (%s)", address, "TLS" if creds else "plaintext")

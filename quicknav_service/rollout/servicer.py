@@ -175,6 +175,29 @@ def _box(low: np.ndarray, high: np.ndarray) -> pb.BoxSpec:
     return pb.BoxSpec(dtype="float32", shape=list(low.shape), low=encode(low), high=encode(high))
 
 
+async def authenticate(settings: Settings, limiter: auth.FailureLimiter, context) -> None:
+    """Abort the call unless it carries ``authorization: Bearer <token>`` (when the server has a
+    token); failures count per client address, as for REST."""
+    token = settings.api_token
+    if not token:
+        return
+    client = _peer_host(context)
+    wait = limiter.retry_after(client)
+    if wait is not None:
+        await context.abort(
+            grpc.StatusCode.RESOURCE_EXHAUSTED,
+            f"too many failed authentications from this address: retry in {wait} s"
+            " (QUICKNAV_AUTH_FAILURES_MAX per QUICKNAV_AUTH_FAILURE_WINDOW_S)",
+        )
+    if not auth.token_matches(_authorization(context), token):
+        limiter.failed(client)
+        await context.abort(
+            grpc.StatusCode.UNAUTHENTICATED,
+            "this server requires the API token: send call metadata"
+            " 'authorization: Bearer <token>' (the QUICKNAV_API_TOKEN of the service)",
+        )
+
+
 class RolloutServicer(pb_grpc.RolloutServiceServicer):
     """Serves ``RolloutService.Rollout``; one instance per server, any number of streams."""
 
@@ -199,23 +222,7 @@ class RolloutServicer(pb_grpc.RolloutServiceServicer):
 
     # ------------------------------------------------------------------ the stream
     async def Rollout(self, request_iterator, context: grpc.aio.ServicerContext):
-        token = self.settings.api_token
-        if token:
-            client = _peer_host(context)
-            wait = self.auth_limiter.retry_after(client)
-            if wait is not None:
-                await context.abort(
-                    grpc.StatusCode.RESOURCE_EXHAUSTED,
-                    f"too many failed authentications from this address: retry in {wait} s"
-                    " (QUICKNAV_AUTH_FAILURES_MAX per QUICKNAV_AUTH_FAILURE_WINDOW_S)",
-                )
-            if not auth.token_matches(_authorization(context), token):
-                self.auth_limiter.failed(client)
-                await context.abort(
-                    grpc.StatusCode.UNAUTHENTICATED,
-                    "this server requires the API token: send call metadata"
-                    " 'authorization: Bearer <token>' (the QUICKNAV_API_TOKEN of the service)",
-                )
+        await authenticate(self.settings, self.auth_limiter, context)
         session = Session()
         idle = self.settings.rollout_idle_s
         try:

@@ -16,7 +16,7 @@ from grpc_reflection.v1alpha.proto_reflection_descriptor_database import (
 )
 from quicknav_client import RolloutClient
 
-from quicknav_service.rollout.server import ROLLOUT_SERVICE, BackgroundServer
+from quicknav_service.rollout.server import POLICY_SERVICE, ROLLOUT_SERVICE, BackgroundServer
 from quicknav_service.settings import Settings
 from tests.service.conftest import free_port, quicknav_process, wait_until_up
 
@@ -39,7 +39,7 @@ def test_health_and_reflection_on_the_rollout_port(tmp_path):
     try:
         with grpc.insecure_channel(f"127.0.0.1:{server.port}") as channel:
             stub = health_pb2_grpc.HealthStub(channel)
-            for name in ("", ROLLOUT_SERVICE):
+            for name in ("", ROLLOUT_SERVICE, POLICY_SERVICE):
                 reply = stub.Check(health_pb2.HealthCheckRequest(service=name), timeout=5)
                 assert reply.status == health_pb2.HealthCheckResponse.SERVING, name
             with pytest.raises(grpc.RpcError) as e:
@@ -48,7 +48,7 @@ def test_health_and_reflection_on_the_rollout_port(tmp_path):
             # what `grpcurl -plaintext host:port list` / `describe` ask, through reflection
             db = ProtoReflectionDescriptorDatabase(channel)
             services = set(db.get_services())
-            assert {ROLLOUT_SERVICE, "grpc.health.v1.Health",
+            assert {ROLLOUT_SERVICE, POLICY_SERVICE, "grpc.health.v1.Health",
                     "grpc.reflection.v1alpha.ServerReflection"} <= services  # fmt: skip
             from google.protobuf.descriptor_pool import DescriptorPool
 
@@ -57,6 +57,9 @@ def test_health_and_reflection_on_the_rollout_port(tmp_path):
             method = rollout.methods_by_name["Rollout"]
             assert method.input_type.full_name == "quicknav.v1.AgentMessage"
             assert "start" in method.input_type.fields_by_name
+            act = pool.FindServiceByName(POLICY_SERVICE).methods_by_name["Act"]
+            assert act.input_type.full_name == "quicknav.v1.PolicyRequest"
+            assert {"load", "act"} <= set(act.input_type.fields_by_name)
     finally:
         server.stop()
 
