@@ -86,6 +86,10 @@ class Settings(BaseSettings):
     heartbeat_s: float = Field(10.0, gt=0.05, le=600)
     max_attempts: int = Field(3, ge=1, le=100)
     max_body_bytes: int = Field(1_000_000, ge=1024)
+    export_policies: bool = Field(
+        True, description="every succeeded train job exports its policy (policy.onnx +"
+        " policy.json, `quicknav export`); false skips that step (a few seconds per job)",
+    )
     replay_checkpoint_every_s: float = Field(
         300.0, ge=0, le=86_400,
         description="SAC/TD3 jobs write their replay buffer with a checkpoint at most this often"

@@ -354,7 +354,7 @@ class Worker:
         result = {"env_steps": summary["env_steps"], "total_steps": summary["total_steps"],
                   "chunks_done": summary["chunks_done"], "final": summary["final"],
                   "warnings": summary["warnings"]}  # fmt: skip
-        if stop_reason.get("why", "done") == "done":
+        if stop_reason.get("why", "done") == "done" and self.settings.export_policies:
             provenance = {"job_id": job.id, "preset": job.request.get("preset")}
             exported = export_policy(run_dir, provenance, self.trainer_for(config))
             result["warnings"] = [*result["warnings"], *exported]

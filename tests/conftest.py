@@ -27,6 +27,9 @@ jax.config.update("jax_compilation_cache_dir", _CACHE)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.3)
 # FastAPI's TestClient sends Host: testserver; the API answers only the names it trusts
 os.environ.setdefault("QUICKNAV_ALLOWED_HOSTS", "testserver,localhost,127.0.0.1,::1")
+# a train job's policy export costs a worker process ~15 s the first time (jax2onnx); the tests of
+# the export set it back on (the journeys run `quicknav serve` as a user does: on by default)
+os.environ.setdefault("QUICKNAV_EXPORT_POLICIES", "false")
 
 
 @pytest.fixture(scope="session")

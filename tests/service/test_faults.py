@@ -364,7 +364,7 @@ def test_pictures_that_fail__jobs_succeed_with_their_numbers_and_a_warning_for_e
     monkeypatch.setattr(train_run, "plot_learning_curve", broken)
     for name in ("draw_trajectories", "draw_difficulty", "draw_gif"):
         monkeypatch.setattr(pictures, name, broken)
-    with LiveServer(tmp_path) as live:
+    with LiveServer(tmp_path, export_policies=True) as live:
         worker, _ = live.run_worker_in_background()
         ended = ("failed", "succeeded", "cancelled")
         r = httpx.post(f"{live.url}/jobs/train", json={"preset": "demo", "overrides": TINY})
@@ -406,7 +406,7 @@ def test_export_that_fails__the_train_job_succeeds_with_a_warning(tmp_path, monk
         raise RuntimeError("the exported policy differs from the JAX one by 1.0e-01 (> 1e-5)")
 
     monkeypatch.setattr(export, "export_run", broken)
-    with LiveServer(tmp_path) as live:
+    with LiveServer(tmp_path, export_policies=True) as live:
         worker, _ = live.run_worker_in_background()
         ended = ("failed", "succeeded", "cancelled")
         r = httpx.post(f"{live.url}/jobs/train", json={"preset": "demo", "overrides": TINY})

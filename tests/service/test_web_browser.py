@@ -43,7 +43,8 @@ def data_dir(tmp_path_factory):
 def server(data_dir):
     port = free_port()
     proc = quicknav_process(["serve", "--port", str(port), "--no-grpc"],
-                            QUICKNAV_DATA_DIR=str(data_dir), QUICKNAV_API_TOKEN=TOKEN)  # fmt: skip
+                            QUICKNAV_DATA_DIR=str(data_dir), QUICKNAV_API_TOKEN=TOKEN,
+                            QUICKNAV_EXPORT_POLICIES="true")  # fmt: skip (the job page offers the policy)
     url = f"http://127.0.0.1:{port}"
     try:
         wait_until_up(url, proc)
