@@ -84,8 +84,9 @@ def test_policy_stream__two_robots_streams_keep_their_own_state(served):
         want = reference(policy, observations, starts)
         for t, (a, b) in enumerate(zip(results[rows], want, strict=True)):
             np.testing.assert_allclose(a, b, atol=1e-5, err_msg=f"rows={rows}, step {t}")
-    loaded = srv.servicer.policy_servicer.policies[JOB]
-    assert loaded.requests == 12 and loaded.batches <= 12
+    # whether two network requests meet in one batch depends on timing; the batcher's own test
+    # below holds that requests arriving together are one call
+    assert srv.servicer.policy_servicer.policies[JOB].requests == 12
 
 
 def test_policy_batcher__requests_of_one_loop_tick_run_as_one_call(served):
