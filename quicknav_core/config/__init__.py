@@ -1,6 +1,6 @@
 """Configuration: the pydantic models that are the only objects crossing a boundary, and ``resolve``.
 
-    env.py        EnvConfig, RewardConfig            the environment
+    env.py        EnvConfig, RewardConfig, RandomizeConfig   the environment
     train.py      networks, algorithms, TrainConfig  a training run
     eval.py       EvalConfig                         a held-out evaluation
     sweep.py      SweepConfig, built-in spaces       an Optuna study
@@ -12,7 +12,7 @@ This package imports pydantic only (no JAX): the service validates requests with
 """
 
 from quicknav_core.config.base import TRACED, Split, StrictModel, traced_fields
-from quicknav_core.config.env import EnvConfig, RewardConfig
+from quicknav_core.config.env import EnvConfig, RandomizeConfig, RewardConfig
 from quicknav_core.config.errors import ConfigError, format_validation_error
 from quicknav_core.config.eval import EvalConfig
 from quicknav_core.config.overrides import OverrideError, apply_overrides, parse_assignments
@@ -59,6 +59,7 @@ __all__ = [
     "OverrideError",
     "PPOConfig",
     "ParamSpec",
+    "RandomizeConfig",
     "RewardConfig",
     "SACConfig",
     "Split",

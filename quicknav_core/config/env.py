@@ -15,12 +15,12 @@ within ``carve_max_steps`` is refused with the ways out.
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Annotated, Literal
 
 from pydantic import Field, model_validator
 
 from quicknav_core.config.base import TRACED, Split, StrictModel
-from quicknav_core.env.constants import GOAL_DIM, POSE_DIM
+from quicknav_core.env.constants import GOAL_DIM, LATENCY_MAX_STEPS, POSE_DIM
 
 if TYPE_CHECKING:  # pragma: no cover - import only for type checkers, keeps this module JAX-free
     from quicknav_core.env.quicknav import QuickNavEnv
@@ -82,6 +82,89 @@ class RewardConfig(StrictModel):
         0.99, ge=0.0, le=1.0, description="γ of the potential shaping (use the trainer's discount)",
         json_schema_extra=TRACED,
     )
+
+
+def _pair(kind: type, lo: float, hi: float) -> type:
+    """A ``[low, high]`` range whose ends lie in ``[lo, hi]`` (the order is checked by the model)."""
+    end = Annotated[kind, Field(ge=lo, le=hi)]
+    return tuple[end, end]  # type: ignore[valid-type]
+
+
+NoiseMetres = _pair(float, 0.0, 1.0)
+NoiseFraction = _pair(float, 0.0, 0.5)
+BiasMetres = _pair(float, -1.0, 1.0)
+Probability = _pair(float, 0.0, 0.99)
+WheelScale = _pair(float, 0.5, 1.5)
+LatencySteps = _pair(int, 0, LATENCY_MAX_STEPS)
+RadiusMetres = _pair(float, 0.001, 100.0)
+
+
+class RandomizeConfig(StrictModel):
+    """Sensor and actuator randomisation: each field is a ``[low, high]`` range, and every env draws
+    one value uniformly from each range at the start of every episode (the two wheels separately).
+
+    The ranges are traced numbers (``EnvParams.randomize``): changing them never recompiles, and
+    ``[x, x]`` fixes a perturbation at ``x`` (what ``quicknav eval --robustness`` does level by
+    level). The defaults perturb nothing; a config without ``randomize`` (the default) runs the
+    plain env, and every figure measured on it stays as it was.
+
+    What each does to a step (``env.perturb``; the NumPy twin does the same with the same draws):
+    a beam that returned reports ``range * (1 + lidar_noise_frac * z1) + lidar_noise_m * z2 +
+    lidar_bias_m``, clipped to ``[0, lidar_max_range]`` (at the cap: no return), with z1, z2
+    standard normal per beam per step; with probability ``beam_dropout`` a beam reports no return
+    (range = max, hit type none), as a real lidar reports inf. The wheels turn at the commanded
+    speed times their scale (a robot that pulls to one side), ``latency_steps`` steps after the
+    command (the queue starts at rest), and the disc has a radius drawn from ``robot_radius_m``
+    (``None``: the env's ``robot_radius``).
+    """
+
+    lidar_noise_m: NoiseMetres = Field(
+        (0.0, 0.0), description="std of additive Gaussian range noise, metres (0..1)",
+        json_schema_extra=TRACED,
+    )  # fmt: skip
+    lidar_noise_frac: NoiseFraction = Field(
+        (0.0, 0.0), description="std of range noise proportional to the range (0..0.5; 0.05 = 5 %)",
+        json_schema_extra=TRACED,
+    )  # fmt: skip
+    lidar_bias_m: BiasMetres = Field(
+        (0.0, 0.0), description="constant range offset for the episode, metres (-1..1)",
+        json_schema_extra=TRACED,
+    )  # fmt: skip
+    beam_dropout: Probability = Field(
+        (0.0, 0.0), description="chance per beam per step of no return (0..0.99)",
+        json_schema_extra=TRACED,
+    )  # fmt: skip
+    wheel_scale_left: WheelScale = Field(
+        (1.0, 1.0), description="left wheel speed / commanded speed (0.5..1.5)",
+        json_schema_extra=TRACED,
+    )  # fmt: skip
+    wheel_scale_right: WheelScale = Field(
+        (1.0, 1.0), description="right wheel speed / commanded speed (0.5..1.5)",
+        json_schema_extra=TRACED,
+    )  # fmt: skip
+    latency_steps: LatencySteps = Field(
+        (0, 0), description=f"steps between a command and the wheels turning (0..{LATENCY_MAX_STEPS})",
+        json_schema_extra=TRACED,
+    )  # fmt: skip
+    robot_radius_m: RadiusMetres | None = Field(
+        None, description="robot disc radius range, metres (None: the env's robot_radius); the"
+        " largest must stay under half a cell", json_schema_extra=TRACED,
+    )  # fmt: skip
+
+    @model_validator(mode="after")
+    def _ordered(self) -> RandomizeConfig:
+        for name in type(self).model_fields:
+            pair = getattr(self, name)
+            if pair is not None and pair[0] > pair[1]:
+                raise ValueError(
+                    f"{name}=[{pair[0]:g}, {pair[1]:g}]: a range is [low, high]; allowed: low <= high"
+                )
+        return self
+
+    @property
+    def wheel_scale_max(self) -> float:
+        """The fastest a wheel turns, as a multiple of its command."""
+        return max(self.wheel_scale_left[1], self.wheel_scale_right[1])
 
 
 def max_grid_for(room_size: float, robot_radius: float) -> int:
@@ -151,6 +234,11 @@ class EnvConfig(StrictModel):
         " trainers switch it off: none of them reads it)",
     )
     reward: RewardConfig = Field(default_factory=RewardConfig)
+    randomize: RandomizeConfig | None = Field(
+        None,
+        description="sensor and actuator randomisation drawn per env per episode (None: off, the"
+        " plain env); see RandomizeConfig",
+    )
 
     @property
     def cell_size(self) -> float:
@@ -203,6 +291,7 @@ class EnvConfig(StrictModel):
                 f"max_wheel_speed*dt = {step:g} m per step exceeds the cell size {c:g} m, so the"
                 " robot could pass through walls; allowed range max_wheel_speed*dt <= room_size/grid_size"
             )
+        self._check_randomize()
         if self.carve_target > self.inner_cells:
             raise ValueError(
                 f"carve_fraction={self.carve_fraction}: grid_size={self.grid_size} has only"
@@ -215,6 +304,26 @@ class EnvConfig(StrictModel):
             )
         self._check_carving()
         return self
+
+    def _check_randomize(self) -> None:
+        """The randomised robot keeps the geometry rules of the plain one at its extremes."""
+        r = self.randomize
+        if r is None:
+            return
+        c = self.cell_size
+        if r.robot_radius_m is not None and 2 * r.robot_radius_m[1] >= c:
+            raise ValueError(
+                f"randomize.robot_radius_m=[{r.robot_radius_m[0]:g}, {r.robot_radius_m[1]:g}]: the"
+                f" largest robot must be narrower than a one-cell corridor; allowed range high <"
+                f" {c / 2:g} m (half the cell size room_size/grid_size = {c:g} m)"
+            )
+        fastest = self.max_wheel_speed * self.dt * r.wheel_scale_max
+        if fastest > c:
+            raise ValueError(
+                f"randomize.wheel_scale_*: at a wheel scale of {r.wheel_scale_max:g} the robot moves"
+                f" {fastest:g} m per step, more than the cell size {c:g} m, so it could pass through"
+                f" walls; allowed range wheel scale <= {c / (self.max_wheel_speed * self.dt):.3g}"
+            )
 
     def _check_carving(self) -> None:
         """Refuse rooms the carving walk cannot make within its step cap (``env.carving``)."""

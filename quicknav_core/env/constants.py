@@ -28,6 +28,11 @@ SPLIT_STREAM = {"train": 0, "test": 1}
 # A distance no real one reaches ("never" for ray hits).
 BIG = 1e30
 
+# Sensor and actuator randomisation (``EnvConfig.randomize``): the longest action latency, in steps.
+# It fixes the length of the per-env queue of past commands, so it is a constant, not a config
+# field: every latency range up to it runs on the same compiled program.
+LATENCY_MAX_STEPS = 4
+
 
 def check_split(split: str) -> str:
     """``split`` if it names a room bank, else a ValueError saying which ones exist."""

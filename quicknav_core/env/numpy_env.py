@@ -8,10 +8,16 @@ It is a ``gymnasium.Env`` (no auto-reset): ``reset`` returns ``(obs, info)``, ``
 ``(obs, reward, terminated, truncated, info)``. ``load(walls, pos, theta, goal)`` (or
 ``reset(options={"walls": ..., "pos": ..., "theta": ..., "goal": ...})``) puts it in a given room,
 pose and goal, e.g. one taken from the JAX env.
+
+With ``EnvConfig.randomize`` each reset draws the episode's perturbation from the twin's own RNG;
+``load(..., perturbation=state.perturbation)`` takes the JAX env's draws instead, and the per-step
+lidar noise, a counter hash of the episode's seed and the step re-implemented here, is then the JAX
+env's to float32 rounding.
 """
 
 from __future__ import annotations
 
+import copy
 from typing import Any, ClassVar
 
 import gymnasium as gym
@@ -24,6 +30,7 @@ from quicknav_core.env.constants import (
     HIT_GOAL,
     HIT_NONE,
     HIT_WALL,
+    LATENCY_MAX_STEPS,
     SPLIT_STREAM,
     beam_angles,
     check_split,
@@ -110,6 +117,45 @@ def cast_lidar_np(
     return ranges, hits.astype(np.int32)
 
 
+_MASK32 = 0xFFFFFFFF
+_GOLDEN = 0x9E3779B9
+
+
+def _fmix32_np(x: np.ndarray) -> np.ndarray:
+    """MurmurHash3's 32-bit finaliser on uint32 words (computed in uint64, kept to 32 bits)."""
+    x = np.asarray(x, np.uint64) & _MASK32
+    x ^= x >> 16
+    x = (x * 0x85EBCA6B) & _MASK32
+    x ^= x >> 13
+    x = (x * 0xC2B2AE35) & _MASK32
+    return x ^ (x >> 16)
+
+
+def scan_uniforms_np(seed: int, time: int, beams: int) -> np.ndarray:
+    """(3, beams) float32 uniforms of the scan at step ``time`` of the episode seeded ``seed``."""
+    word = _fmix32_np(np.uint64(seed) ^ _fmix32_np((np.uint64(time) * _GOLDEN + 0x2545F491) & _MASK32))
+    counter = np.arange(3 * beams, dtype=np.uint64)
+    bits = _fmix32_np(word ^ _fmix32_np((counter * _GOLDEN + 0x632BE5AB) & _MASK32))
+    one_to_two = ((bits >> 9) | 0x3F800000).astype(np.uint32).view(np.float32)
+    return (one_to_two - f32(1.0)).reshape(3, beams)
+
+
+def perturb_scan_np(
+    p: dict, time: int, ranges: np.ndarray, hits: np.ndarray, max_range: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Noise, bias and dropout on a scan (``EnvConfig.randomize``), as ``env.perturb`` does."""
+    u = scan_uniforms_np(int(p["noise_seed"]), time, ranges.shape[0])
+    radius = np.sqrt(f32(-2.0) * np.log(f32(1.0) - u[0]))
+    angle = f32(2.0 * np.pi) * u[1]
+    z_frac, z_add = radius * np.cos(angle), radius * np.sin(angle)
+    noisy = (ranges * (f32(1.0) + f32(p["lidar_noise_frac"]) * z_frac)
+             + f32(p["lidar_noise_m"]) * z_add + f32(p["lidar_bias_m"])).astype(f32)  # fmt: skip
+    max_range = f32(max_range)
+    returned = (hits != HIT_NONE) & (u[2] >= f32(p["beam_dropout"])) & (noisy <= max_range)
+    return (np.where(returned, np.maximum(noisy, f32(0.0)), max_range).astype(f32),
+            np.where(returned, hits, HIT_NONE).astype(np.int32))  # fmt: skip
+
+
 def disc_overlaps_wall_np(pos: np.ndarray, walls: np.ndarray, cell: float, radius: float) -> bool:
     """Whether a disc at ``pos`` overlaps a wall; only the 3x3 cells around it can."""
     g = walls.shape[0]
@@ -174,7 +220,8 @@ class QuickNavNumpyEnv(gym.Env):
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
         if options and "walls" in options:
-            obs = self.load(options["walls"], options["pos"], options["theta"], options["goal"])
+            obs = self.load(options["walls"], options["pos"], options["theta"], options["goal"],
+                            options.get("perturbation"))  # fmt: skip
             return obs, {}
         c = self.config
         rng = self.np_random
@@ -183,7 +230,9 @@ class QuickNavNumpyEnv(gym.Env):
         free = np.flatnonzero(~walls.reshape(-1))
         s = int(rng.integers(free.size))
         start = free[s]
-        slack = max(0.5 * float(self._cell) - c.robot_radius, 0.0)
+        perturbation = self._draw_perturbation(rng)
+        radius = c.robot_radius if perturbation is None else float(perturbation["robot_radius"])
+        slack = max(0.5 * float(self._cell) - radius, 0.0)
         pos = (np.array([start % g, start // g], f32) + f32(0.5)) * self._cell
         pos = pos + rng.uniform(-1.0, 1.0, 2).astype(f32) * f32(slack)
         others = np.delete(free, s)
@@ -191,10 +240,58 @@ class QuickNavNumpyEnv(gym.Env):
         cand_xy = (np.stack([cand % g, cand // g], axis=-1).astype(f32) + f32(0.5)) * self._cell
         goal = cand_xy[np.argmax(((cand_xy - pos) ** 2).sum(axis=-1))]
         theta = rng.uniform(-np.pi, np.pi)
-        return self.load(walls, pos, theta, goal), {}
+        return self.load(walls, pos, theta, goal, perturbation), {}
 
-    def load(self, walls, pos, theta, goal) -> np.ndarray:
-        """Start an episode in a given room, pose and goal; returns the first observation."""
+    def _draw_perturbation(self, rng: np.random.Generator) -> dict[str, Any] | None:
+        """This episode's randomisation draws (None when the config is not randomised)."""
+        r = self.config.randomize
+        if r is None:
+            return None
+        radius = r.robot_radius_m or (self.config.robot_radius,) * 2
+        lat = r.latency_steps
+        return {
+            "noise_seed": int(rng.integers(2**32)),
+            "lidar_noise_m": f32(rng.uniform(*r.lidar_noise_m)),
+            "lidar_noise_frac": f32(rng.uniform(*r.lidar_noise_frac)),
+            "lidar_bias_m": f32(rng.uniform(*r.lidar_bias_m)),
+            "beam_dropout": f32(rng.uniform(*r.beam_dropout)),
+            "wheel_scale": np.array([rng.uniform(*r.wheel_scale_left),
+                                     rng.uniform(*r.wheel_scale_right)], f32),  # fmt: skip
+            "latency_steps": int(rng.integers(lat[0], lat[1] + 1)),
+            "robot_radius": f32(rng.uniform(*radius)),
+            "past_commands": np.zeros((LATENCY_MAX_STEPS, 2), f32),
+        }
+
+    def _perturbation(self, given: Any) -> dict[str, Any] | None:
+        """A perturbation as the twin keeps it, from a dict or the JAX env's ``Perturbation``."""
+        if self.config.randomize is None:
+            if given is not None:
+                raise ValueError("perturbation given, but this env is not randomised (EnvConfig.randomize)")
+            return None
+        if given is None:  # one that changes nothing
+            given = {"noise_seed": 0, "lidar_noise_m": 0.0, "lidar_noise_frac": 0.0,
+                     "lidar_bias_m": 0.0, "beam_dropout": 0.0, "wheel_scale": (1.0, 1.0),
+                     "latency_steps": 0, "robot_radius": self.config.robot_radius}  # fmt: skip
+        get = given.get if isinstance(given, dict) else lambda k, d=None: getattr(given, k, d)
+        queue = get("past_commands")
+        return {
+            "noise_seed": int(np.asarray(get("noise_seed"))),
+            "lidar_noise_m": f32(get("lidar_noise_m")),
+            "lidar_noise_frac": f32(get("lidar_noise_frac")),
+            "lidar_bias_m": f32(get("lidar_bias_m")),
+            "beam_dropout": f32(get("beam_dropout")),
+            "wheel_scale": np.asarray(get("wheel_scale"), f32).reshape(2),
+            "latency_steps": int(np.asarray(get("latency_steps"))),
+            "robot_radius": f32(get("robot_radius")),
+            "past_commands": (np.zeros((LATENCY_MAX_STEPS, 2), f32) if queue is None
+                              else np.array(queue, f32).reshape(LATENCY_MAX_STEPS, 2)),
+        }  # fmt: skip
+
+    def load(self, walls, pos, theta, goal, perturbation: Any = None) -> np.ndarray:
+        """Start an episode in a given room, pose and goal; returns the first observation.
+
+        A randomised twin takes the episode's ``perturbation`` too: a dict or the JAX env's
+        ``state.perturbation`` (default: one that changes nothing)."""
         walls = np.asarray(walls, dtype=bool)
         g = self.config.grid_size
         if walls.shape != (g, g):
@@ -215,6 +312,7 @@ class QuickNavNumpyEnv(gym.Env):
             "cycle_count": 0,
             "collisions": 0,
             "time": 0,
+            "perturbation": self._perturbation(perturbation),
         }
         self._cast()
         return self._obs()
@@ -225,6 +323,12 @@ class QuickNavNumpyEnv(gym.Env):
         c, s = self.config, self._state
         a = np.asarray(action, f32).reshape(2)
         a = np.clip(np.where(np.isnan(a), f32(0.0), a), f32(-1.0), f32(1.0)).astype(f32)
+        p = s["perturbation"]
+        if p is not None:  # the wheels act on the command of latency_steps ago, each at its scale
+            queue, lat = p["past_commands"], p["latency_steps"]
+            acting = queue[lat - 1] if lat > 0 else a
+            p["past_commands"] = np.concatenate([a[None], queue[:-1]]).astype(f32)
+            a = (acting * p["wheel_scale"]).astype(f32)
         vmax, base, dt = f32(c.max_wheel_speed), f32(c.wheel_base), f32(c.dt)
         left, right = a[0] * vmax, a[1] * vmax
         v = f32(0.5) * (left + right)
@@ -310,12 +414,12 @@ class QuickNavNumpyEnv(gym.Env):
         """A copy of the current state (walls, pos, theta, goal, lidar, counters)."""
         if self._state is None:
             raise RuntimeError("call reset() (or load()) before snapshot()")
-        return {k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in self._state.items()}
+        return copy.deepcopy(self._state)
 
     def _overlaps(self, pos: np.ndarray) -> bool:
-        return disc_overlaps_wall_np(
-            pos, self._state["walls"], self._cell, self.config.robot_radius
-        )
+        p = self._state["perturbation"]
+        radius = self.config.robot_radius if p is None else p["robot_radius"]
+        return disc_overlaps_wall_np(pos, self._state["walls"], self._cell, radius)
 
     def _cast(self) -> None:
         s, c = self._state, self.config
@@ -323,7 +427,10 @@ class QuickNavNumpyEnv(gym.Env):
             s["pos"], s["theta"], s["goal"], s["walls"], self._angles, self._cell,
             c.lidar_max_range, c.goal_radius,
         )  # fmt: skip
-
+        if s["perturbation"] is not None:
+            s["lidar_ranges"], s["lidar_hits"] = perturb_scan_np(
+                s["perturbation"], s["time"], s["lidar_ranges"], s["lidar_hits"], c.lidar_max_range
+            )
     def _obs(self) -> np.ndarray:
         s, c = self._state, self.config
         room = f32(c.room_size)

@@ -14,10 +14,18 @@ from quicknav_core.env.bits import num_words, pack_rows, pack_rows_np, read_bit,
 from quicknav_core.env.constants import HIT_GOAL, HIT_WALL, check_split, observation_bounds
 from quicknav_core.env.dynamics import drive, move_with_sliding, wheel_command
 from quicknav_core.env.lidar import cast_lidar_packed
+from quicknav_core.env.perturb import (
+    PERTURBATION_WORDS,
+    apply_command,
+    at_rest,
+    draw,
+    perturb_scan,
+    randomize_numbers,
+)
 from quicknav_core.env.reward import reward_numbers, reward_terms, total_reward
 from quicknav_core.env.rng import hash_key_bits, uniform_from_bits
 from quicknav_core.env.rooms import free_cell_table, make_room_bank
-from quicknav_core.env.types import EnvParams, EnvState
+from quicknav_core.env.types import EnvParams, EnvState, Perturbation
 
 if TYPE_CHECKING:  # pragma: no cover - the env reads its config's fields, never imports the module
     from quicknav_core.config import EnvConfig, Split
@@ -37,6 +45,9 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
     Action: float32 (2,) in [-1, 1] = (left, right) wheel speed / max_wheel_speed; NaN counts as 0.
     Reward: the paper's formula (``reward.reward_terms``); terms are reported in ``info``.
     Termination: goal reached (centre within goal_radius). Truncation: ``max_steps`` steps.
+    Randomisation (``EnvConfig.randomize``, off by default): each episode draws lidar noise, bias
+    and dropout, wheel scales, an action latency and a radius (``state.perturbation``); the
+    observation's lidar entries are then what the perturbed lidar reports (``env.perturb``).
     ``step`` auto-resets: a finished episode's next observation is the first of a new episode, and
     ``info["final_obs"]`` holds the last observation of the finished one (if ``final_obs``).
 
@@ -56,6 +67,7 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         self.num_beams = config.lidar_beams
         self.observe_goal = config.observe_goal
         self.final_obs = config.final_obs
+        self.randomized = config.randomize is not None
 
     # Identity: jit treats the env as a static argument. Two envs are the same static argument
     # when their compiled code is the same: the fields that fix shapes and code paths. Numbers
@@ -65,7 +77,7 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
     def static_key(self) -> tuple:
         c = self.config
         return (c.grid_size, c.lidar_beams, c.lidar_fov_deg, c.lidar_method, c.goal_candidates,
-                c.observe_goal, c.final_obs)  # fmt: skip
+                c.observe_goal, c.final_obs, self.randomized)  # fmt: skip
 
     def __hash__(self) -> int:
         return hash(("QuickNavEnv", self.static_key))
@@ -148,10 +160,18 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         goal: jax.Array,
         params: EnvParams | None = None,
         room_index: int = -1,
+        perturbation: Perturbation | None = None,
     ) -> tuple[jax.Array, EnvState]:
-        """Start an episode in a given room, pose and goal (for tests, replays and the twin)."""
+        """Start an episode in a given room, pose and goal (for tests, replays and the twin).
+
+        A randomised env takes the episode's ``perturbation`` too (default: one that changes
+        nothing, ``perturb.at_rest``)."""
         if params is None:
             params = self.default_params
+        if self.randomized and perturbation is None:
+            perturbation = at_rest(params.robot_radius)
+        elif not self.randomized and perturbation is not None:
+            raise ValueError("perturbation given, but this env is not randomised (EnvConfig.randomize)")
         g = self.grid_size
         walls = jnp.asarray(walls, bool)
         if walls.shape != (g, g):
@@ -161,8 +181,9 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         pos = jnp.asarray(pos, jnp.float32).reshape(2)
         rc = jnp.clip(jnp.floor(pos[::-1] / (params.room_size / g)).astype(jnp.int32), 0, g - 1)
         state = self._episode_start(
-            pos, theta, goal, pack_rows(walls.T), pack_rows(walls), jnp.int32(room_index), rc
-        )
+            pos, theta, goal, pack_rows(walls.T), pack_rows(walls), jnp.int32(room_index), rc,
+            perturbation,
+        )  # fmt: skip
         state = self.with_lidar(state, params)
         return self.get_obs(state, params), state
 
@@ -225,11 +246,15 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         """A fresh episode (lidar not yet cast): room, start pose and the farthest goal candidate."""
         g, k = self.grid_size, self.config.goal_candidates
         cell = params.room_size / g
-        # One PRNG call for everything a reset draws (the reset runs every step under vmap).
-        u = uniform_from_bits(hash_key_bits(key, 5 + k))
+        # One PRNG call for everything a reset draws (the reset runs every step under vmap); the
+        # randomisation's words come after the plain env's, which stay what they were.
+        bits = hash_key_bits(key, 5 + k + (PERTURBATION_WORDS if self.randomized else 0))
+        u = uniform_from_bits(bits[: 5 + k])
         u_room, u_start, jitter_u, u_head, u_goal = u[0], u[1], u[2:4], u[4], u[5:]
+        perturbation = draw(params.randomize, bits[5 + k :]) if self.randomized else None
+        radius = params.robot_radius if perturbation is None else perturbation.robot_radius
         if params.pool_room is not None:
-            return self._spawn_from_pool(params, u_room, jitter_u, u_head)
+            return self._spawn_from_pool(params, u_room, jitter_u, u_head, perturbation, radius)
         n_rooms = params.rooms.shape[0]
         room = jnp.minimum(jnp.floor(u_room * n_rooms).astype(jnp.int32), n_rooms - 1)
         n_free = params.num_free[room]
@@ -237,7 +262,7 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         s = jnp.minimum(jnp.floor(u_start * n_free).astype(jnp.int32), n_free - 1)
         start = params.free_cells[room, s]
         start_rc = jnp.stack([start // g, start % g])
-        slack = jnp.maximum(0.5 * cell - params.robot_radius, 0.0)
+        slack = jnp.maximum(0.5 * cell - radius, 0.0)
         pos = (start_rc[::-1].astype(jnp.float32) + 0.5) * cell + (2.0 * jitter_u - 1.0) * slack
         # Goal: the farthest of K free cells drawn from the cells other than the start cell.
         j = jnp.minimum(jnp.floor(u_goal * (n_free - 1)).astype(jnp.int32), n_free - 2)
@@ -247,10 +272,13 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         goal = cand_xy[jnp.argmax(jnp.sum((cand_xy - pos) ** 2, axis=-1))]
         theta = (2.0 * u_head - 1.0) * jnp.pi
         return self._episode_start(
-            pos, theta, goal, params.room_col_bits[room], params.room_row_bits[room], room, start_rc
-        )
+            pos, theta, goal, params.room_col_bits[room], params.room_row_bits[room], room, start_rc,
+            perturbation,
+        )  # fmt: skip
 
-    def _spawn_from_pool(self, params: EnvParams, u_pick, jitter_u, u_head) -> EnvState:
+    def _spawn_from_pool(
+        self, params: EnvParams, u_pick, jitter_u, u_head, perturbation, radius
+    ) -> EnvState:
         """A curriculum episode: one of the pool's first ``pool_count`` (room, start, goal) cells,
         the start jittered and the heading drawn as in ``spawn``."""
         g = self.grid_size
@@ -259,16 +287,17 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         i = jnp.minimum(jnp.floor(u_pick * count).astype(jnp.int32), count - 1)
         room, start, goal_cell = params.pool_room[i], params.pool_start[i], params.pool_goal[i]
         start_rc = jnp.stack([start // g, start % g])
-        slack = jnp.maximum(0.5 * cell - params.robot_radius, 0.0)
+        slack = jnp.maximum(0.5 * cell - radius, 0.0)
         pos = (start_rc[::-1].astype(jnp.float32) + 0.5) * cell + (2.0 * jitter_u - 1.0) * slack
         goal = (jnp.stack([goal_cell % g, goal_cell // g]).astype(jnp.float32) + 0.5) * cell
         theta = (2.0 * u_head - 1.0) * jnp.pi
         return self._episode_start(
-            pos, theta, goal, params.room_col_bits[room], params.room_row_bits[room], room, start_rc
-        )
+            pos, theta, goal, params.room_col_bits[room], params.room_row_bits[room], room, start_rc,
+            perturbation,
+        )  # fmt: skip
 
     def _episode_start(
-        self, pos, theta, goal, col_bits, row_bits, room_index, start_rc
+        self, pos, theta, goal, col_bits, row_bits, room_index, start_rc, perturbation=None
     ) -> EnvState:
         """The state at an episode's first step (lidar not yet cast, only the start cell visited)."""
         g, b = self.grid_size, self.num_beams
@@ -288,6 +317,7 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
             lidar_ranges=jnp.zeros((b,), jnp.float32),
             lidar_hits=jnp.zeros((b,), jnp.int32),
             time=jnp.int32(0),
+            perturbation=perturbation,
         )
 
     def transition(
@@ -298,12 +328,14 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         g = self.grid_size
         cell = params.room_size / g
         command = wheel_command(action)
+        perturbation, radius = state.perturbation, params.robot_radius
+        if perturbation is not None:
+            command, perturbation = apply_command(perturbation, command)
+            radius = perturbation.robot_radius
         delta, theta = drive(
             state.theta, command, params.max_wheel_speed, params.wheel_base, params.dt
         )
-        pos, collided = move_with_sliding(
-            state.pos, delta, state.row_bits, cell, params.robot_radius
-        )
+        pos, collided = move_with_sliding(state.pos, delta, state.row_bits, cell, radius)
         rc = jnp.clip(jnp.floor(pos[::-1] / cell).astype(jnp.int32), 0, g - 1)
         entered = jnp.any(rc != state.cell)
         seen = read_bit(state.visited_bits[rc[0]], rc[1])
@@ -312,7 +344,9 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         cycle_count = state.cycle_count + revisit.astype(jnp.int32)
         visited_bits = set_bit(state.visited_bits, rc[0], rc[1])
         dist_prev = jnp.linalg.norm(state.goal - state.pos)
-        dist = jnp.linalg.norm(state.goal - pos)
+        # a robot that did not move made no progress: XLA may round the two norms of one point
+        # differently (fused multiply-adds), which would turn sign(0) into a penalty or a reward
+        dist = jnp.where(jnp.all(pos == state.pos), dist_prev, jnp.linalg.norm(state.goal - pos))
         goal_reached = dist <= params.goal_radius
         terms = reward_terms(collided, cycle_count, dist_prev, dist, goal_reached, params, new_cell)
         time = state.time + 1
@@ -325,6 +359,7 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
             cycle_count=cycle_count,
             collisions=state.collisions + collided.astype(jnp.int32),
             time=time,
+            perturbation=perturbation,
         )
         info = {
             "terminated": goal_reached,
@@ -350,6 +385,10 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
             params.lidar_max_range,
             params.goal_radius,
         )
+        if state.perturbation is not None:
+            ranges, hits = perturb_scan(
+                state.perturbation, state.time, ranges, hits, params.lidar_max_range
+            )
         return state.replace(lidar_ranges=ranges, lidar_hits=hits)
 
 
@@ -373,6 +412,7 @@ def make_params(config: EnvConfig, split: Split = "train") -> EnvParams:
         goal_radius=f32(config.goal_radius),
         max_steps_in_episode=np.int32(config.max_steps),
         **reward_numbers(config.reward),
+        randomize=randomize_numbers(config),
     )
 
 

@@ -14,6 +14,35 @@ from quicknav_core.env.bits import unpack_rows
 
 
 @struct.dataclass
+class Perturbation:
+    """One episode's draws of the sensor and actuator randomisation (``EnvConfig.randomize``) and
+    the queue of past wheel commands that the latency reads. Shapes for one env."""
+
+    noise_seed: jax.Array  # () uint32 stream of this episode's per-step lidar noise
+    lidar_noise_m: jax.Array  # () float32 std of additive range noise, metres
+    lidar_noise_frac: jax.Array  # () float32 std of range noise per metre of range
+    lidar_bias_m: jax.Array  # () float32 range offset, metres
+    beam_dropout: jax.Array  # () float32 chance per beam per step of no return
+    wheel_scale: jax.Array  # (2,) float32 (left, right) wheel speed / command
+    latency_steps: jax.Array  # () int32 steps between a command and the wheels turning
+    robot_radius: jax.Array  # () float32 disc radius, metres
+    past_commands: jax.Array  # (LATENCY_MAX_STEPS, 2) float32 commands, most recent first
+
+
+@struct.dataclass
+class RandomizeRanges:
+    """The ``[low, high]`` ranges the perturbations are drawn from (traced: no recompile)."""
+
+    lidar_noise_m: jax.Array  # (2,) float32
+    lidar_noise_frac: jax.Array  # (2,) float32
+    lidar_bias_m: jax.Array  # (2,) float32
+    beam_dropout: jax.Array  # (2,) float32
+    wheel_scale: jax.Array  # (2, 2) float32 [(left, right), (low, high)]
+    latency_steps: jax.Array  # (2,) int32
+    robot_radius: jax.Array  # (2,) float32
+
+
+@struct.dataclass
 class EnvState:
     """Per-environment state. All fields are JAX arrays; shapes are for one (unbatched) env."""
 
@@ -30,6 +59,8 @@ class EnvState:
     lidar_ranges: jax.Array  # (beams,) float32 metres, capped at lidar_max_range
     lidar_hits: jax.Array  # (beams,) int32 HIT_NONE / HIT_WALL / HIT_GOAL
     time: jax.Array  # () int32 steps taken this episode
+    # the episode's randomisation draws (None: the env is not randomised, ``EnvConfig.randomize``)
+    perturbation: Perturbation | None = None
 
     @property
     def walls(self) -> jax.Array:
@@ -80,3 +111,5 @@ class EnvParams:
     pool_start: jax.Array | None = None  # (P,) int32 flat start cell (row * grid + col)
     pool_goal: jax.Array | None = None  # (P,) int32 flat goal cell
     pool_count: jax.Array | int = 0  # episodes of the pool in use (the curriculum's level)
+    # Sensor and actuator randomisation (``env.perturb``; None: the env is not randomised)
+    randomize: RandomizeRanges | None = None
