@@ -255,8 +255,9 @@ class QuickNavNumpyEnv(gym.Env):
             "lidar_noise_frac": f32(rng.uniform(*r.lidar_noise_frac)),
             "lidar_bias_m": f32(rng.uniform(*r.lidar_bias_m)),
             "beam_dropout": f32(rng.uniform(*r.beam_dropout)),
-            "wheel_scale": np.array([rng.uniform(*r.wheel_scale_left),
-                                     rng.uniform(*r.wheel_scale_right)], f32),  # fmt: skip
+            "wheel_scale": np.array(
+                [rng.uniform(*r.wheel_scale_left), rng.uniform(*r.wheel_scale_right)], f32
+            ),
             "latency_steps": int(rng.integers(lat[0], lat[1] + 1)),
             "robot_radius": f32(rng.uniform(*radius)),
             "past_commands": np.zeros((LATENCY_MAX_STEPS, 2), f32),

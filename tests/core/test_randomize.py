@@ -103,7 +103,7 @@ def test_randomize__draws_lie_in_their_ranges_per_env_per_episode():
     assert np.corrcoef(p.wheel_scale.T)[0, 1] < 0.1  # the wheels draw separately
     counts = np.bincount(p.latency_steps, minlength=LATENCY_MAX_STEPS + 1)
     assert (counts[:4] > 400).all() and counts[4:].sum() == 0  # 0..3 uniformly, nothing else
-    assert 0.1 <= p.robot_radius.min() and p.robot_radius.max() <= 0.2
+    assert p.robot_radius.min() >= 0.1 and p.robot_radius.max() <= 0.2
     assert len(np.unique(p.noise_seed)) > 1990
 
 
