@@ -36,7 +36,7 @@ def run_env(source: str):
 
 def eval_request(
     run: Path | None, policy: str | None, episodes: int, seed: int, deterministic: bool,
-    split: str, config: Path | None, overrides: list[str] | None,
+    split: str, config: Path | None, overrides: list[str] | None, robustness: bool = False,
 ) -> dict[str, Any]:  # fmt: skip
     """The eval request the flags describe (what the SDK would send, with a job for the run)."""
     if (run is None) == (policy is None):
@@ -46,6 +46,8 @@ def eval_request(
     env = {**(read_json(config) if config else {}), **sets(overrides)}
     request: dict[str, Any] = {"episodes": episodes, "seed": seed, "split": split,
                                "deterministic": deterministic, "env": env}  # fmt: skip
+    if robustness:
+        request["robustness"] = True
     if run is not None:
         request["run"] = str(run)
     else:
@@ -76,6 +78,12 @@ def eval_cmd(
     out: Annotated[
         Path | None, typer.Option(help="Folder for eval.json and pictures (default RUN/eval).")
     ] = None,
+    robustness: Annotated[
+        bool,
+        typer.Option("--robustness", help="Also run the episodes at fixed levels of lidar noise,"
+                     " beam dropout, range bias, action latency and wheel asymmetry: success and"
+                     " SPL per level (eval.json, robustness.png)."),
+    ] = False,
     print_only: PrintConfigOpt = False,
 ) -> None:
     """Evaluate a trained run or a baseline on held-out rooms: success, SPL, steps, collisions."""
@@ -83,7 +91,8 @@ def eval_cmd(
 
     if split not in ("test", "train"):
         fail(f"--split {split!r}: allowed values are test and train")
-    request = eval_request(run, policy, episodes, seed, deterministic, split, config, set_)
+    request = eval_request(run, policy, episodes, seed, deterministic, split, config, set_,
+                           robustness)  # fmt: skip
     cfg = resolved(resolve_eval, request, trained_env=run_env)
     if print_only:
         print_config(cfg)
@@ -97,7 +106,8 @@ def eval_cmd(
         run_dir = None
         out_dir = out or Path("eval") / policy
     enable_compilation_cache()
-    with console.status(f"evaluating on {episodes} episodes..."):
+    what = f"{episodes} episodes" + (" at every perturbation level" if robustness else "")
+    with console.status(f"evaluating on {what}..."):
         try:
             result, _ = run_eval(cfg, out_dir, run_dir=run_dir)
         except (ValueError, FileNotFoundError) as e:
@@ -107,10 +117,27 @@ def eval_cmd(
         hi = f"{b['path_m'][1]:g}" if b["path_m"][1] is not None else "..."
         console.print(f"  oracle path {b['path_m'][0]:g}-{hi} m: {b['episodes']} episodes, success"
                       f" {b['success_rate']:.0%}, SPL {b['spl']:.2f}")  # fmt: skip
+    if result.get("robustness"):
+        print_robustness(result["robustness"], result["agent"])
     written = sorted(p.name for p in Path(out_dir).iterdir() if p.is_file())
     console.print(f"wrote {out_dir}/: {', '.join(written)}")
     for message in result.get("warnings", []):
         warn(message)
+
+
+def print_robustness(rows, agent: str) -> None:
+    """One line per perturbation level: success (95 % CI), SPL, steps, collisions."""
+    from rich.table import Table
+
+    t = Table(title=f"{agent}: robustness ({rows[0]['episodes']} episodes per level)")
+    for name, justify in (("perturbation", "left"), ("success (95% CI)", "right"),
+                          ("SPL", "right"), ("steps", "right"), ("collisions", "right")):  # fmt: skip
+        t.add_column(name, justify=justify)
+    for r in rows:
+        lo, hi = r["success_ci95"]
+        t.add_row(r["label"], f"{r['success_rate']:.0%} ({lo:.0%} - {hi:.0%})", f"{r['spl']:.2f}",
+                  f"{r['mean_steps']:.1f}", f"{r['collisions_per_episode']:.2f}")  # fmt: skip
+    console.print(t)
 
 
 def print_eval(result) -> None:

@@ -229,6 +229,11 @@ def jobs_submit(
     stochastic: Annotated[
         bool, typer.Option("--stochastic", hidden=True, help="Deprecated: --no-deterministic.")
     ] = False,
+    robustness: Annotated[
+        bool,
+        typer.Option("--robustness", help="eval: also run the episodes at fixed levels of lidar"
+                     " noise, dropout, bias, latency and wheel asymmetry (robustness.png)."),
+    ] = False,
     follow: Annotated[
         bool, typer.Option("--follow", help="Wait with a progress bar until the job finishes.")
     ] = False,
@@ -249,6 +254,8 @@ def jobs_submit(
         fail("--trials and --parallel are for sweep jobs")
     if kind == "eval" and total_steps:
         fail("--total-steps is for train and sweep jobs")
+    if kind != "eval" and robustness:
+        fail("--robustness is for eval jobs")
     if stochastic:
         warn("--stochastic is deprecated: write --no-deterministic (the API's field is"
              " `deterministic`)")  # fmt: skip
@@ -279,7 +286,8 @@ def jobs_submit(
             )  # fmt: skip
         else:
             submitted = client.evaluate(job=job, policy=policy, episodes=episodes, seed=seed,
-                                        env=overrides, split=split, deterministic=deterministic)  # fmt: skip
+                                        env=overrides, split=split, deterministic=deterministic,
+                                        robustness=robustness)  # fmt: skip
         console.print(f"submitted {submitted.kind} job {submitted.id} ({submitted.status})",
                       highlight=False)  # fmt: skip
         if follow:

@@ -39,6 +39,12 @@ class EvalConfig(StrictModel):
         3, ge=0, le=1024, description="episodes whose per-step poses, lidar and actions are kept"
     )
     pictures: bool = True
+    robustness: bool = Field(
+        False,
+        description="also run the episodes at each perturbation level (lidar noise, dropout, bias,"
+        " latency, wheel asymmetry; eval.robustness.LEVELS): success and SPL per level in"
+        " eval.json and robustness.png",
+    )
 
     @model_validator(mode="after")
     def _check_source(self) -> EvalConfig:

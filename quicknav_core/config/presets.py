@@ -92,6 +92,32 @@ PRESETS: dict[str, dict[str, Any]] = {
             "chunk_steps": 1_048_576,
         },
     },
+    "paper-ppo-robust": {
+        "description": "paper-ppo trained for a real robot's sensor and wheels: every episode draws"
+        " lidar noise, range bias, beam dropout, per-wheel speed scales and an action latency"
+        " (EnvConfig.randomize).",
+        "notes": "The ranges are QuickNav's choice, a margin around the levels of `quicknav eval"
+        " --robustness` (noise up to 10 % of the range plus 2 cm, dropout up to 10 %, bias +-5 cm,"
+        " wheels 0.9-1.1 of their command, 0-2 steps of latency); everything else is paper-ppo.",
+        "config": {
+            "env": {
+                "randomize": {
+                    "lidar_noise_frac": [0.0, 0.1],
+                    "lidar_noise_m": [0.0, 0.02],
+                    "lidar_bias_m": [-0.05, 0.05],
+                    "beam_dropout": [0.0, 0.1],
+                    "wheel_scale_left": [0.9, 1.1],
+                    "wheel_scale_right": [0.9, 1.1],
+                    "latency_steps": [0, 2],
+                },
+            },
+            "algorithm": _PAPER_PPO,
+            "network": {"kind": "mlp", "hidden_sizes": [128, 128]},
+            "num_envs": 256,
+            "total_steps": 20_000_000,
+            "chunk_steps": 1_048_576,
+        },
+    },
     "fast-ppo": {
         "description": "Table 1 for wall-clock time: PPO, 2x128 MLP, goal observed (paper-ppo's env "
         "and network) with 64-step rollouts of 64 envs: many small updates instead of few large ones.",

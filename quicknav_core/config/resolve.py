@@ -119,6 +119,11 @@ class EvalRequest(StrictModel):
     seed: int = Field(0, ge=0, le=2**31 - 1, description="episode seed: same seed, same episodes")
     split: Split = Field("test", description="room bank: test (held out) or train")
     deterministic: bool = Field(True, description="act with the policy's mean, not a sample")
+    robustness: bool = Field(
+        False,
+        description="also evaluate at each fixed level of lidar noise, beam dropout, range bias,"
+        " action latency and wheel asymmetry (success and SPL per level; robustness.png)",
+    )
     stochastic: bool | None = Field(
         None, description="deprecated: the opposite of 'deterministic' (kept for one release)"
     )
@@ -384,4 +389,5 @@ def resolve_eval(
         seed=req.seed,
         split=req.split,
         deterministic=req.acts_deterministically,
+        robustness=req.robustness,
     )

@@ -18,6 +18,7 @@ from quicknav_core.config.base import json_safe
 from quicknav_core.eval.agents import Agent, PolicyAgent, agent_from_run
 from quicknav_core.eval.episodes import Episodes, EvalStopped, replay_data, run_episodes
 from quicknav_core.eval.pictures import draw_all, draw_difficulty, draw_gif, draw_trajectories
+from quicknav_core.eval.robustness import robustness_levels, run_robustness
 from quicknav_core.eval.scripted import baseline_agent
 from quicknav_core.eval.statistics import (
     PATH_BIN_EDGES,
@@ -38,14 +39,18 @@ def evaluate(
     progress: Callable[[int, int], bool | None] | None = None,
 ) -> tuple[dict[str, Any], Episodes]:  # fmt: skip
     """Evaluate ``agent``; with ``out_dir`` write eval.json (with success and SPL per difficulty
-    bin), replay.json, trajectories.png, difficulty.png and episodes.gif.
+    bin), replay.json, trajectories.png, difficulty.png and episodes.gif. With ``cfg.robustness``
+    the same episodes also run at each perturbation level (``eval.robustness``): eval.json's
+    ``robustness`` rows and robustness.png.
 
     ``progress(done, total)`` after every batch of episodes may return True to stop
     (``EvalStopped``: nothing is written). The numbers are written before the pictures; a picture
     that fails is left out and named in the result's ``warnings`` (always present, in eval.json too).
     """
     env, params = env_config.build(cfg.split)
-    ep = run_episodes(env, params, agent, cfg, progress)
+    total = cfg.episodes * (1 + len(robustness_levels(env_config)) if cfg.robustness else 1)
+    report = None if progress is None else (lambda done, _n: progress(done, total))
+    ep = run_episodes(env, params, agent, cfg, report)
     step_length = env_config.max_wheel_speed * env_config.dt
     result = {
         "agent": agent.name,
@@ -63,6 +68,9 @@ def evaluate(
         },
         "warnings": [],
     }
+    if cfg.robustness:
+        later = None if progress is None else (lambda done, _n: progress(cfg.episodes + done, total))
+        result["robustness"] = run_robustness(env_config, agent, cfg, later)
     if out_dir is not None:
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -71,7 +79,8 @@ def evaluate(
             write_json(out_dir / "replay.json", replay_data(ep, env_config, agent.name), indent=None)
         if cfg.pictures:
             result["warnings"] = draw_all(ep, env_config, result["by_path_length"], out_dir,
-                                          agent.name, gif=bool(cfg.gif_episodes))  # fmt: skip
+                                          agent.name, gif=bool(cfg.gif_episodes),
+                                          robustness=result.get("robustness"))  # fmt: skip
             if result["warnings"]:
                 write_json(out_dir / "eval.json", result)
     return result, ep

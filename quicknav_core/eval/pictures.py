@@ -1,4 +1,5 @@
-"""The pictures of an evaluation: trajectories.png, difficulty.png and episodes.gif.
+"""The pictures of an evaluation: trajectories.png, difficulty.png, episodes.gif and (with
+``robustness``) robustness.png.
 
 ``draw_all`` draws each one on its own: a picture that fails to render is reported as a warning
 naming the file, and never costs the evaluation its numbers (eval.json is written before).
@@ -15,7 +16,8 @@ import numpy as np
 from quicknav_core.config import EnvConfig
 from quicknav_core.eval.episodes import Episodes
 
-__all__ = ["draw_all", "draw_difficulty", "draw_gif", "draw_trajectories", "picture_warning"]
+__all__ = ["draw_all", "draw_difficulty", "draw_gif", "draw_robustness", "draw_trajectories",
+           "picture_warning"]  # fmt: skip
 
 
 def picture_warning(name: str, error: BaseException) -> str:
@@ -26,13 +28,15 @@ def picture_warning(name: str, error: BaseException) -> str:
 
 def draw_all(
     ep: Episodes, config: EnvConfig, rows: list[dict[str, Any]], out_dir: Path, title: str,
-    gif: bool = True,
+    gif: bool = True, robustness: list[dict[str, Any]] | None = None,
 ) -> list[str]:  # fmt: skip
     """Draw every picture of an evaluation into ``out_dir``; the warnings of those that failed."""
     import matplotlib.pyplot as plt
 
     jobs = [("trajectories.png", lambda p: draw_trajectories(ep, config, p, title=title)),
             ("difficulty.png", lambda p: draw_difficulty(rows, p, title=title))]  # fmt: skip
+    if robustness:
+        jobs.append(("robustness.png", lambda p: draw_robustness(robustness, p, title=title)))
     if gif and ep.gif["theta"].shape[0]:
         jobs.append(("episodes.gif", lambda p: draw_gif(ep, config, p, title=title)))
     warnings = []
@@ -73,6 +77,41 @@ def draw_difficulty(rows: list[dict[str, Any]], path: Path, title: str = "") -> 
     ax.set_title(f"{title}: by difficulty" if title else "by difficulty", fontsize=10)
     ax.grid(alpha=0.3)
     ax.legend(loc="center right", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def draw_robustness(rows: list[dict[str, Any]], path: Path, title: str = "") -> Path:
+    """Success (95 % interval) and SPL against each perturbation's level, one panel each; every
+    panel starts at the unperturbed row (level 0)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    base = next(r for r in rows if r["perturbation"] == "none")
+    kinds = list(dict.fromkeys(r["perturbation"] for r in rows if r["perturbation"] != "none"))
+    fig, axes = plt.subplots(1, len(kinds), figsize=(3.2 * len(kinds), 3.4), sharey=True,
+                             squeeze=False)  # fmt: skip
+    for ax, kind in zip(axes[0], kinds, strict=True):
+        own = sorted([r for r in rows if r["perturbation"] == kind], key=lambda r: r["level"])
+        points = sorted([{**base, "level": 0.0, "unit": own[0]["unit"]}, *own], key=lambda r: r["level"])
+        scale = 100.0 if own[0]["unit"] == "%" else 1.0
+        x = np.array([r["level"] for r in points]) * scale
+        success = np.array([r["success_rate"] for r in points])
+        ci = np.array([r["success_ci95"] for r in points]).reshape(-1, 2)
+        yerr = np.clip([success - ci[:, 0], ci[:, 1] - success], 0.0, None)
+        ax.errorbar(x, success, yerr=yerr, marker="o", capsize=3, color="tab:green",
+                    label="success (95 % CI)")  # fmt: skip
+        ax.plot(x, [r["spl"] for r in points], marker="s", color="tab:blue", label="SPL")
+        ax.set_xlabel(f"{kind.replace('_', ' ')} ({own[0]['unit']})", fontsize=9)
+        ax.set_ylim(0, 1.05)
+        ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel("held-out episodes")
+    axes[0][0].legend(loc="lower left", fontsize=8)
+    fig.suptitle(f"{title}: robustness" if title else "robustness", fontsize=11)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)

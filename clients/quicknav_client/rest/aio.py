@@ -252,12 +252,16 @@ class AsyncQuickNavClient:
         deterministic: bool = True,
         stochastic: bool | None = None,
         idempotency_key: str | None = None,
+        robustness: bool = False,
     ) -> AsyncJob:
         """Submit an eval job: a train job's checkpoint, or a ``random``/``oracle`` baseline.
 
-        ``stochastic`` is the deprecated opposite of ``deterministic`` (the API's name).
+        ``stochastic`` is the deprecated opposite of ``deterministic`` (the API's name);
+        ``robustness`` also runs the episodes at each fixed perturbation level (eval.json's
+        ``robustness`` rows, robustness.png).
         """
-        body = core.eval_body(job, policy, episodes, seed, env, split, deterministic, stochastic)
+        body = core.eval_body(job, policy, episodes, seed, env, split, deterministic, stochastic,
+                              robustness)  # fmt: skip
         return await self._submit("/jobs/eval", body, idempotency_key)
 
     async def jobs(

@@ -229,6 +229,7 @@ def eval_body(
     split: str = "test",
     deterministic: bool = True,
     stochastic: bool | None = None,
+    robustness: bool = False,
 ) -> dict:
     """The POST /jobs/eval body (the server checks that exactly one of job and policy is given)."""
     if stochastic is not None:
@@ -243,6 +244,8 @@ def eval_body(
         body["policy"] = policy
     if env:
         body["env"] = dict(env)
+    if robustness:
+        body["robustness"] = True
     return body
 
 

@@ -239,13 +239,17 @@ class QuickNavClient:
         deterministic: bool = True,
         stochastic: bool | None = None,
         idempotency_key: str | None = None,
+        robustness: bool = False,
     ) -> Job:
         """Submit an eval job: a train job's checkpoint, or a ``random``/``oracle`` baseline.
 
         ``env`` sets fields of the env the episodes run in (the trained policy's own, or the
-        default env for a baseline); ``stochastic`` is the deprecated opposite of deterministic.
+        default env for a baseline); ``stochastic`` is the deprecated opposite of deterministic;
+        ``robustness`` also runs the episodes at each fixed perturbation level (eval.json's
+        ``robustness`` rows, robustness.png).
         """
-        body = core.eval_body(job, policy, episodes, seed, env, split, deterministic, stochastic)
+        body = core.eval_body(job, policy, episodes, seed, env, split, deterministic, stochastic,
+                              robustness)  # fmt: skip
         return self._submit("/jobs/eval", body, idempotency_key)
 
     def jobs(

@@ -390,11 +390,13 @@ async function evalsOf(job) {
 function evalsSection(job, sec) {
   const episodes = h("input", { id: "eval-episodes", type: "number", min: 1, max: 100000, value: 100,
     "aria-label": "episodes", style: "width:90px" });
+  // also run the episodes at each fixed level of lidar noise, dropout, bias, latency, wheel asymmetry
+  const robust = h("input", { id: "eval-robustness", type: "checkbox" });
   const run = h("button", { class: "primary", id: "run-eval", onclick: async () => {
     run.disabled = true;
     try {
       const ev = await api("/jobs/eval", { method: "POST",
-        body: { job_id: job.id, episodes: Number(episodes.value), split: "test" } });
+        body: { job_id: job.id, episodes: Number(episodes.value), split: "test", robustness: robust.checked } });
       location.href = `/ui/jobs/${ev.id}`;
     } catch (e) { run.disabled = false; showError(sec, e); }
   } }, "Evaluate on held-out rooms");
@@ -402,7 +404,9 @@ function evalsSection(job, sec) {
   const table = h("table", { id: "evals" });
   sec.append(h("h2", {}, "Evaluations"), controls, table);
   return async () => {
-    fill(controls, job.status === "succeeded" ? [run, episodes, h("span", { class: "muted" }, "episodes, fixed seeds")]
+    fill(controls, job.status === "succeeded" ? [run, episodes, h("span", { class: "muted" }, "episodes, fixed seeds"),
+      h("label", { title: "success and SPL at fixed levels of lidar noise, beam dropout, range bias, latency and wheel asymmetry (robustness.png)" },
+        robust, " and at each sensor perturbation")]
       : h("span", { class: "muted" }, "An evaluation can run once the job has succeeded."));
     const evals = await evalsOf(job);
     table.dataset.pending = String(evals.filter((e) => !finished(e)).length);
