@@ -83,7 +83,7 @@ def auth_failed(request: Request, message: str) -> HTTPException:
 bearer = HTTPBearer(auto_error=False, description="QUICKNAV_API_TOKEN, when the server sets one")
 
 
-async def require_token(
+def require_token(
     request: Request,
     settings: SettingsDep,
     store: StoreDep,

@@ -10,6 +10,7 @@ from fastapi import APIRouter, FastAPI
 from fastapi.routing import APIRoute
 
 from quicknav_service.api import docs, errors, openapi
+from quicknav_service.api.event_hub import EventHub
 from quicknav_service.api.metrics import RequestMetrics
 from quicknav_service.api.middleware import BodyLimit, CrossSiteGuard, TrustedHosts
 from quicknav_service.api.routes import artifacts, events, jobs, ops
@@ -62,6 +63,7 @@ def create_app(
 
             app.state.workers = WorkerSupervisor(settings, store, settings.max_concurrent_jobs).start()
         yield
+        await app.state.event_hub.close()
         if app.state.workers:
             await anyio.to_thread.run_sync(app.state.workers.stop)
 
@@ -72,6 +74,7 @@ def create_app(
     app.state.store = store
     app.state.auth_limiter = FailureLimiter(settings.auth_failures_max, settings.auth_failure_window_s)
     app.state.streams = StreamSlots(settings.sse_max_per_client, settings.sse_max_total)
+    app.state.event_hub = EventHub(store)
     app.state.workers = []
     docs.install(app)
     errors.install(app)

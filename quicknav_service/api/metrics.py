@@ -65,10 +65,9 @@ class StoreCollector(Collector):
         yield jobs
         by_kind = GaugeMetricFamily("quicknav_jobs_by_kind", "Jobs by kind and status.",
                                     labels=["kind", "status"])  # fmt: skip
-        for kind in JobKind:
-            for status in JobStatus:
-                by_kind.add_metric([kind.value, status.value],
-                                   store.list(status=status, kind=kind, limit=1)[1])  # fmt: skip
+        for kind, per_status in store.counts_by_kind().items():
+            for status, n in per_status.items():
+                by_kind.add_metric([kind, status], n)
         yield by_kind
         yield GaugeMetricFamily("quicknav_queue_depth", "Jobs waiting for a worker.",
                                 value=counts.get("queued", 0))  # fmt: skip

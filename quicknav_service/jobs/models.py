@@ -196,6 +196,14 @@ class JobStore(Protocol):
     def counts(self) -> dict[str, int]:
         """Jobs per status."""
 
+    def counts_by_kind(self) -> dict[str, dict[str, int]]:
+        """Jobs per kind and status: ``{kind: {status: n}}``, every kind and status present."""
+
+    def wait_events(self, after: dict[str, int], timeout_s: float) -> set[str]:
+        """Block until one of the jobs ``after`` names has an event past its number there, or
+        ``timeout_s`` passed: the ids of the jobs with news (empty on a timeout). One call serves
+        every viewer of those jobs."""
+
     def resolve_id(self, prefix: str) -> str:
         """The full id of the one job whose id starts with ``prefix`` (JobNotFound if none,
         AmbiguousId if several)."""

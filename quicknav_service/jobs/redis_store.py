@@ -3,7 +3,10 @@
 Keys (``prefix`` defaults to ``quicknav``):
   {p}:job:{id}        the job record (JSON)
   {p}:jobs            sorted set of job ids by creation time (listing)
-  {p}:status:{status} set of job ids per status (counts, filters)
+  {p}:st:{status}     sorted set of job ids per status, by creation time
+  {p}:kd:{kind}       sorted set of job ids per kind, by creation time
+  {p}:sk:{status}:{kind}  the same per (status, kind)
+  {p}:index           the version of those indexes (a store written before them is indexed once)
   {p}:idem:{key}      idempotency key -> job id
   {p}:queue           stream of job ids; consumer group "workers" delivers each to one worker
   {p}:events:{id}     capped stream of progress events, ids "<seq>-1" so Last-Event-ID is a number
@@ -11,7 +14,9 @@ Keys (``prefix`` defaults to ``quicknav``):
 Delivery is at least once: a claimed entry stays pending until the job finishes; a heartbeat resets
 its idle time; an entry idle longer than the lease (its worker died) is reclaimed by another worker
 with XAUTOCLAIM. Record updates are optimistic transactions (WATCH/MULTI) so a heartbeat and a
-cancel never overwrite each other.
+cancel never overwrite each other; the indexes change in the same transaction as the record, so a
+page of a listing or a count is one or two sorted-set reads however many jobs the store holds.
+An event is numbered and appended by one script (atomic); viewers block on the event streams.
 """
 
 from __future__ import annotations
@@ -42,6 +47,15 @@ from quicknav_service.jobs.models import (
 
 GROUP = "workers"
 SHORT_ID = re.compile(r"[0-9a-f]{4,31}")
+INDEX_VERSION = "2"
+# KEYS: events stream, event counter, job record; ARGV: event JSON, max events. Returns the event's
+# number, or -1 when the job does not exist (nothing is written).
+PUBLISH = """
+if redis.call('EXISTS', KEYS[3]) == 0 then return -1 end
+local seq = redis.call('INCR', KEYS[2])
+redis.call('XADD', KEYS[1], 'MAXLEN', '~', ARGV[2], seq .. '-1', 'data', ARGV[1])
+return seq
+"""
 
 
 def unavailable(e: Exception) -> StoreUnavailable | None:
@@ -72,6 +86,8 @@ class RedisJobStore:
         self.max_attempts = max_attempts
         self.max_events = max_events
         self._group_ready = False
+        self._publish = self.r.register_script(PUBLISH)
+        self._indexed = False
 
     def _ensure_group(self, force: bool = False) -> None:
         """Create the queue's consumer group (once; again after Redis lost it, force=True)."""
@@ -94,12 +110,42 @@ class RedisJobStore:
             raise JobNotFound(job_id)
         return Job.model_validate_json(raw)
 
+    def _index_keys(self, status: JobStatus, kind: JobKind) -> tuple[str, str]:
+        return self._k("st", status.value), self._k("sk", status.value, kind.value)
+
     def _write(self, pipe, job: Job, old_status: JobStatus | None) -> None:
         job.updated_at = time.time()
         pipe.set(self._k("job", job.id), job.model_dump_json())
-        if old_status is not None and old_status != job.status:
-            pipe.srem(self._k("status", old_status.value), job.id)
-        pipe.sadd(self._k("status", job.status.value), job.id)
+        if old_status == job.status:
+            return
+        if old_status is not None:
+            pipe.zrem(self._k("st", old_status.value), job.id)
+            pipe.zrem(self._k("sk", old_status.value, job.kind.value), job.id)
+        else:
+            pipe.zadd(self._k("jobs"), {job.id: job.created_at})
+            pipe.zadd(self._k("kd", job.kind.value), {job.id: job.created_at})
+        for key in self._index_keys(job.status, job.kind):
+            pipe.zadd(key, {job.id: job.created_at})
+
+    def _ensure_indexes(self) -> None:
+        """Index a store written before the indexes existed (once; what a listing reads)."""
+        if self._indexed:
+            return
+        if self.r.get(self._k("index")) != INDEX_VERSION:
+            ids = self.r.zrange(self._k("jobs"), 0, -1)
+            for start in range(0, len(ids), 1000):
+                chunk = ids[start : start + 1000]
+                with self.r.pipeline(transaction=False) as pipe:
+                    for raw in self.r.mget([self._k("job", i) for i in chunk]):
+                        if raw is None:
+                            continue
+                        job = Job.model_validate_json(raw)
+                        for key in (self._k("kd", job.kind.value), *self._index_keys(job.status, job.kind)):
+                            pipe.zadd(key, {job.id: job.created_at})
+                    pipe.execute()
+            self.r.delete(*[self._k("status", s.value) for s in JobStatus])  # the old sets
+            self.r.set(self._k("index"), INDEX_VERSION)
+        self._indexed = True
 
     def _update(self, job_id: str, fn: Callable[[Job, Any], Any]) -> Any:
         """Read-modify-write of one job under WATCH; ``fn(job, pipe)`` mutates the job and may queue
@@ -140,9 +186,9 @@ class RedisJobStore:
                     raise IdempotencyConflict(idempotency_key)
                 return other, False
         self._ensure_group()
+        self._ensure_indexes()
         with self.r.pipeline() as pipe:
             self._write(pipe, job, None)
-            pipe.zadd(self._k("jobs"), {job.id: job.created_at})
             pipe.xadd(self._k("queue"), {"job": job.id})
             pipe.execute()
         return job, True
@@ -151,18 +197,22 @@ class RedisJobStore:
         return self._read(job_id)
 
     def list(self, status=None, kind=None, limit=50, offset=0):
-        ids = self.r.zrevrange(self._k("jobs"), 0, -1)
-        if status is not None:
-            members = self.r.smembers(self._k("status", JobStatus(status).value))
-            ids = [i for i in ids if i in members]
-        jobs = []
-        for raw in self.r.mget([self._k("job", i) for i in ids]) if ids else []:
-            if raw is None:
-                continue
-            job = Job.model_validate_json(raw)
-            if kind is None or job.kind == JobKind(kind):
-                jobs.append(job)
-        return jobs[offset : offset + limit], len(jobs)
+        self._ensure_indexes()
+        if status is not None and kind is not None:
+            key = self._k("sk", JobStatus(status).value, JobKind(kind).value)
+        elif status is not None:
+            key = self._k("st", JobStatus(status).value)
+        elif kind is not None:
+            key = self._k("kd", JobKind(kind).value)
+        else:
+            key = self._k("jobs")
+        with self.r.pipeline(transaction=True) as pipe:
+            pipe.zcard(key)
+            pipe.zrevrange(key, offset, offset + limit - 1)
+            total, ids = pipe.execute()
+        raws = self.r.mget([self._k("job", i) for i in ids]) if ids else []
+        # a job deleted between the two reads is left out of the page
+        return [Job.model_validate_json(raw) for raw in raws if raw is not None], int(total)
 
     def _take(self, worker: str, lease_s: float) -> tuple[str, str, bool] | None:
         """Next stream entry for this worker: (entry id, job id, reclaimed). A job whose worker
@@ -349,18 +399,20 @@ class RedisJobStore:
         with self.r.pipeline() as pipe:
             pipe.delete(self._k("job", job_id), self._k("events", job_id), self._k("evseq", job_id))
             pipe.zrem(self._k("jobs"), job_id)
-            pipe.srem(self._k("status", job.status.value), job_id)
+            pipe.zrem(self._k("kd", job.kind.value), job_id)
+            for key in self._index_keys(job.status, job.kind):
+                pipe.zrem(key, job_id)
             if job.idempotency_key:
                 pipe.delete(self._k("idem", job.idempotency_key))
             pipe.execute()
 
     def publish(self, job_id, event):
-        if not self.r.exists(self._k("job", job_id)):
+        data = json.dumps({**event, "time": time.time()})
+        keys = [self._k("events", job_id), self._k("evseq", job_id), self._k("job", job_id)]
+        seq = int(self._publish(keys=keys, args=[data, self.max_events]))
+        if seq < 0:
             raise JobNotFound(job_id)
-        seq = self.r.incr(self._k("evseq", job_id))
-        self.r.xadd(self._k("events", job_id), {"data": json.dumps({**event, "time": time.time()})},
-                    id=f"{seq}-1", maxlen=self.max_events, approximate=True)  # fmt: skip
-        return int(seq)
+        return seq
 
     def events(self, job_id, after=0, limit=1000):
         rows = self.r.xrange(
@@ -369,7 +421,33 @@ class RedisJobStore:
         return [(int(i.split("-")[0]), json.loads(f["data"])) for i, f in rows]
 
     def counts(self):
-        return {s.value: int(self.r.scard(self._k("status", s.value))) for s in JobStatus}
+        self._ensure_indexes()
+        with self.r.pipeline(transaction=False) as pipe:
+            for s in JobStatus:
+                pipe.zcard(self._k("st", s.value))
+            return {s.value: int(n) for s, n in zip(JobStatus, pipe.execute(), strict=True)}
+
+    def counts_by_kind(self):
+        self._ensure_indexes()
+        pairs = [(k, s) for k in JobKind for s in JobStatus]
+        with self.r.pipeline(transaction=False) as pipe:
+            for k, s in pairs:
+                pipe.zcard(self._k("sk", s.value, k.value))
+            counted = pipe.execute()
+        out = {k.value: {} for k in JobKind}
+        for (k, s), n in zip(pairs, counted, strict=True):
+            out[k.value][s.value] = int(n)
+        return out
+
+    def wait_events(self, after, timeout_s):
+        streams = {self._k("events", job_id): f"{seq}-1" if seq else "0-0"
+                   for job_id, seq in after.items()}  # fmt: skip
+        if not streams:
+            time.sleep(timeout_s)
+            return set()
+        got = self.r.xread(streams, count=1, block=max(1, int(timeout_s * 1000)))
+        prefix = len(self._k("events", ""))
+        return {name[prefix:] for name, _ in got or []}
 
     # ------------------------------------------------------------------ rollout endpoints
     def register_endpoint(self, endpoint, ttl_s):

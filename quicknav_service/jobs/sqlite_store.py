@@ -31,6 +31,8 @@ from quicknav_service.jobs.models import (
 
 log = logging.getLogger("quicknav.store")
 SHORT_ID = re.compile(r"[0-9a-f]{4,31}")
+# how often event viewers of the embedded store look for new events (one query for all of them)
+WAIT_POLL_S = 0.1
 
 
 def unavailable(e: Exception) -> StoreUnavailable | None:
@@ -58,6 +60,7 @@ CREATE TABLE IF NOT EXISTS jobs (
     data TEXT NOT NULL
 );
 CREATE INDEX IF NOT EXISTS jobs_status_created ON jobs (status, created_at);
+CREATE INDEX IF NOT EXISTS jobs_kind_status_created ON jobs (kind, status, created_at);
 CREATE TABLE IF NOT EXISTS endpoints (
     worker TEXT PRIMARY KEY,
     since REAL NOT NULL,
@@ -398,6 +401,37 @@ class SQLiteJobStore:
         out = {s.value: 0 for s in JobStatus}
         out.update({s: int(n) for s, n in rows})
         return out
+
+    def counts_by_kind(self):
+        with self._lock:
+            rows = self._db.execute(
+                "SELECT kind, status, COUNT(*) FROM jobs GROUP BY kind, status"
+            ).fetchall()
+        out = {k.value: {s.value: 0 for s in JobStatus} for k in JobKind}
+        for kind, status, n in rows:
+            out[kind][status] = int(n)
+        return out
+
+    def wait_events(self, after, timeout_s):
+        # the embedded store has no server to push from: one indexed query for every watched job
+        # every WAIT_POLL_S, whatever the number of viewers of each (they share this call)
+        deadline = time.monotonic() + timeout_s
+        ids = list(after)
+        while True:
+            if ids:
+                marks = ",".join("?" * len(ids))
+                with self._lock:
+                    rows = self._db.execute(
+                        f"SELECT job_id, MAX(seq) FROM events WHERE job_id IN ({marks}) GROUP BY job_id",
+                        ids,
+                    ).fetchall()  # fmt: skip
+                news = {job_id for job_id, seq in rows if seq > after[job_id]}
+                if news:
+                    return news
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return set()
+            time.sleep(min(WAIT_POLL_S, left))
 
     # ------------------------------------------------------------------ rollout endpoints
     def register_endpoint(self, endpoint, ttl_s):

@@ -52,7 +52,7 @@ class SessionPublic(BaseModel):
 
 
 @auth.get("/session", response_model=SessionPublic)
-async def read_session(request: Request, settings: SettingsDep, store: StoreDep) -> SessionPublic:
+def read_session(request: Request, settings: SettingsDep, store: StoreDep) -> SessionPublic:
     """Whether a token is needed and whether this browser's session cookie carries it."""
     required = settings.api_token is not None
     ok = not required or session_valid(settings, store, request.cookies.get(SESSION_COOKIE))
@@ -60,7 +60,7 @@ async def read_session(request: Request, settings: SettingsDep, store: StoreDep)
 
 
 @auth.post("/session", response_model=SessionPublic)
-async def create_session(body: SessionCreate, request: Request, response: Response,
+def create_session(body: SessionCreate, request: Request, response: Response,
                          settings: SettingsDep, store: StoreDep) -> SessionPublic:  # fmt: skip
     """Check the token and open a session: a random id in the browser's cookie (HttpOnly,
     SameSite=Strict), kept server-side until it expires, the browser signs out or the token
@@ -80,7 +80,7 @@ async def create_session(body: SessionCreate, request: Request, response: Respon
 
 
 @auth.delete("/session", status_code=204)
-async def delete_session(request: Request, store: StoreDep) -> Response:
+def delete_session(request: Request, store: StoreDep) -> Response:
     """Sign out: the session ends on the server too (its cookie no longer opens anything)."""
     cookie = request.cookies.get(SESSION_COOKIE)
     if cookie and len(cookie) <= 200:

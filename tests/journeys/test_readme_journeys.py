@@ -182,6 +182,10 @@ def test_journey__in_process(runner):
         elif "quicknav train" in command:
             assert runner.run_dir, f"train printed no run folder:\n{ran}"
             assert (runner.workdir / runner.run_dir / "learning_curve.png").exists()
+        elif "quicknav eval" in command and "--robustness" in command:
+            out = runner.workdir / shlex.split(command, comments=True)[-1]
+            assert_robustness(json.loads((out / "eval.json").read_text()), ran.stdout)
+            assert (out / "robustness.png").stat().st_size > 10_000
         elif "quicknav eval" in command:
             result = json.loads((runner.workdir / runner.run_dir / "eval" / "eval.json").read_text())
             success = result["metrics"]["success_rate"]
@@ -192,6 +196,21 @@ def test_journey__in_process(runner):
             assert_policy_folder(out, held_out=0.9)
             assert "held-out success" in ran.stdout, str(ran)
     assert runner.server is None  # the in-process journey needs no service
+
+
+def assert_robustness(result: dict, printed: str) -> None:
+    """A learned policy's robustness rows: every level, the unperturbed one as good as the plain
+    evaluation, and the perturbations reaching the policy (rows that differ from it)."""
+    from quicknav_core.eval.robustness import LEVELS
+
+    rows = result["robustness"]
+    assert [r["label"] for r in rows] == [lv.label for lv in LEVELS]
+    none = rows[0]
+    assert none["success_rate"] == result["metrics"]["success_rate"] >= 0.9, none
+    moved = [r["label"] for r in rows[1:] if (r["mean_steps"], r["collisions_per_episode"])
+             != (none["mean_steps"], none["collisions_per_episode"])]  # fmt: skip
+    assert len(moved) >= 10, f"only {moved} changed the policy's episodes"
+    assert result["warnings"] == [] and "robustness" in printed and "latency 3 steps" in printed
 
 
 @pytest.mark.slow  # the service pages (docs/service.md, sdk.md, grpc.md) on one live server: ~3 min

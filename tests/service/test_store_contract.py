@@ -184,3 +184,73 @@ def test_browser_sessions_are_kept_until_they_expire_or_are_closed(store):
     assert store.session_proof("k2") is None  # expired
     store.delete_session("k1")
     assert store.session_proof("k1") is None  # signed out
+
+
+def test_filters_counts_and_pages_follow_every_state_change(store):
+    """Listing by status, kind or both, counting by status and by kind, and pages with their totals
+    agree with the records through submit, claim, finish, cancel and delete."""
+    jobs = [store.submit(kind, {"i": i}, {})[0]
+            for i, kind in enumerate(["train", "eval", "train", "sweep", "eval", "train"])]  # fmt: skip
+    first = store.claim("w1", lease_s=30)
+    second = store.claim("w1", lease_s=30)
+    store.finish(first.id, "w1", "succeeded", result={})
+    store.cancel(jobs[5].id)
+    store.delete(jobs[5].id)
+    records = [store.get(j.id) for j in jobs[:5]]
+    for status in JobStatus:
+        for kind in ("train", "eval", "sweep", "trial"):
+            want = [j.id for j in reversed(records) if j.status == status and j.kind.value == kind]
+            page, total = store.list(status=status, kind=kind, limit=50)
+            assert total == len(want) and [j.id for j in page] == want, (status, kind)
+        want = [j.id for j in reversed(records) if j.status == status]
+        assert store.list(status=status)[1] == len(want) == store.counts()[status.value]
+    by_kind = store.counts_by_kind()
+    assert set(by_kind) == {"train", "eval", "sweep", "trial"}
+    assert by_kind["train"]["succeeded"] == 1 and by_kind["eval"]["running"] == 1
+    assert sum(n for k in by_kind.values() for n in k.values()) == 5
+    assert second.status == JobStatus.running
+    page, total = store.list(kind="eval", limit=1, offset=1)
+    assert total == 2 and [j.id for j in page] == [jobs[1].id]
+    assert store.list(offset=10) == ([], 5)
+
+
+def test_wait_events_wakes_on_news_and_times_out_without(store):
+    a, _ = store.submit("train", {}, {})
+    b, _ = store.submit("train", {}, {})
+    t0 = time.monotonic()
+    assert store.wait_events({a.id: 0, b.id: 0}, timeout_s=0.3) == set()
+    assert time.monotonic() - t0 >= 0.25
+    seq = store.publish(b.id, {"type": "progress"})
+    assert store.wait_events({a.id: 0, b.id: 0}, timeout_s=5) == {b.id}
+    assert store.wait_events({a.id: 0, b.id: seq}, timeout_s=0.2) == set()
+    # an event published while a viewer waits wakes it at once
+    import threading
+
+    threading.Timer(0.2, lambda: store.publish(a.id, {"type": "progress"})).start()
+    t0 = time.monotonic()
+    assert store.wait_events({a.id: 0, b.id: seq}, timeout_s=5) == {a.id}
+    assert time.monotonic() - t0 < 2.0
+    with pytest.raises(JobNotFound):
+        store.publish("0" * 32, {"type": "progress"})  # no job: nothing written
+
+
+def test_redis__a_store_written_before_the_indexes_is_indexed_once():
+    client = redis.Redis.from_url(REDIS_URL, decode_responses=True)
+    client.flushdb()
+    prefix = f"t{uuid.uuid4().hex[:8]}"
+    old = RedisJobStore(REDIS_URL, prefix=prefix)
+    made = [old.submit(kind, {"i": i}, {})[0] for i, kind in enumerate(["train", "eval", "train"])]
+    old.cancel(made[1].id)
+    # as a store of the previous release left it: records, the creation-time set, status sets
+    for key in client.scan_iter(f"{prefix}:st:*"):
+        client.delete(key)
+    for key in [*client.scan_iter(f"{prefix}:sk:*"), *client.scan_iter(f"{prefix}:kd:*"), f"{prefix}:index"]:
+        client.delete(key)
+    client.sadd(f"{prefix}:status:queued", made[0].id, made[2].id)
+    client.sadd(f"{prefix}:status:cancelled", made[1].id)
+    new = RedisJobStore(REDIS_URL, prefix=prefix)
+    assert new.counts()["queued"] == 2 and new.counts()["cancelled"] == 1
+    assert [j.id for j in new.list(kind="train")[0]] == [made[2].id, made[0].id]
+    assert new.list(status="cancelled", kind="eval")[1] == 1
+    assert not client.exists(f"{prefix}:status:queued") and client.get(f"{prefix}:index") == "2"
+    client.flushdb()

@@ -1,9 +1,14 @@
-"""A job's progress as Server-Sent Events: resumable with Last-Event-ID, ends with the terminal event."""
+"""A job's progress as Server-Sent Events: resumable with Last-Event-ID, ends with the terminal event.
+
+A viewer reads the job's past events from the store once, then waits on the process's event hub
+(``api.event_hub``), which blocks on the store for every watched job at once: an idle viewer costs
+neither store calls nor a thread, and keep-alives go out every KEEPALIVE_S on time."""
 
 from __future__ import annotations
 
 import asyncio
 import json
+import time
 from typing import Annotated
 
 import anyio
@@ -13,6 +18,7 @@ from fastapi.responses import StreamingResponse
 from quicknav_core.config.base import json_safe
 from quicknav_service.api.deps import JobId, JobsDep, StoreDep, client_address, require_token
 from quicknav_service.api.errors import AUTH, STORE, responses
+from quicknav_service.api.event_hub import EventHub
 from quicknav_service.jobs.models import JobNotFound, StoreUnavailable
 
 router = APIRouter(prefix="/jobs", tags=["jobs"], dependencies=[Depends(require_token)])
@@ -68,9 +74,13 @@ class StreamSlots:
 
 MAX_EVENT_ID = 2**63 - 1  # event ids are SQLite/Redis 64-bit integers
 KEEPALIVE_S = 15.0
-POLL_S = 0.05
 OUTAGE_POLL_S = 1.0
+FINISHED_GRACE_S = 1.0  # a finished job's terminal event may be a moment behind its record
 TERMINAL = ("succeeded", "failed", "cancelled")
+
+
+def deleted(job_id: str) -> str:
+    return f"event: deleted\ndata: {json.dumps({'type': 'deleted', 'job_id': job_id})}\n\n"
 
 
 @router.get("/{job_id}/events", response_class=EventStreamResponse,
@@ -95,46 +105,66 @@ async def job_events(job_id: JobId, request: Request, store: StoreDep, jobs: Job
     client = client_address(request)
     slots.take(client)
 
+    hub: EventHub = request.app.state.event_hub
+
+    def sse(seq: int, ev: dict) -> str:
+        data = json.dumps(json_safe(ev), allow_nan=False)
+        return f"id: {seq}\nevent: {ev.get('type', 'message')}\ndata: {data}\n\n"
+
     async def stream():
         nonlocal after
-        idle = 0.0
+        # what happened before this viewer came, read once from the store
         while True:
-            if await request.is_disconnected():
-                return
             try:
                 events = await anyio.to_thread.run_sync(store.events, job_id, after)
-                job = None if events else await anyio.to_thread.run_sync(store.get, job_id)
-            except JobNotFound:  # deleted while someone was watching: say so and end cleanly
-                yield f"event: deleted\ndata: {json.dumps({'type': 'deleted', 'job_id': job_id})}\n\n"
+                break
+            except JobNotFound:
+                yield deleted(job_id)
                 return
             except StoreUnavailable:  # an outage: keep the stream open and try again
-                idle += OUTAGE_POLL_S
-                if idle >= KEEPALIVE_S:
-                    yield ": keep-alive (job store unavailable)\n\n"
-                    idle = 0.0
+                yield ": keep-alive (job store unavailable)\n\n"
                 await asyncio.sleep(OUTAGE_POLL_S)
-                continue
-            for seq, ev in events:
-                after = seq
-                data = json.dumps(json_safe(ev), allow_nan=False)
-                yield f"id: {seq}\nevent: {ev.get('type', 'message')}\ndata: {data}\n\n"
-                if ev.get("type") in TERMINAL:
+        for seq, ev in events:
+            after = seq
+            yield sse(seq, ev)
+            if ev.get("type") in TERMINAL:
+                return
+        # then the hub wakes this viewer when there is news: an idle viewer asks nothing
+        watched = hub.watch(job_id, after)
+        try:
+            quiet_since = time.monotonic()
+            finished_at = None
+            while True:
+                left = KEEPALIVE_S - (time.monotonic() - quiet_since)
+                # an idle viewer sleeps until news or its keep-alive; the hub wakes it when the
+                # job ends, and then it looks again every FINISHED_GRACE_S
+                await hub.wait(watched, after, FINISHED_GRACE_S if watched.finished else max(0.0, left))
+                try:
+                    events = await hub.events(job_id, watched, after)
+                except StoreUnavailable:
+                    events = []
+                for seq, ev in events:
+                    after = seq
+                    yield sse(seq, ev)
+                    if ev.get("type") in TERMINAL:
+                        return
+                if events:
+                    quiet_since = time.monotonic()
+                    continue
+                if watched.deleted:  # deleted while someone was watching: say so, end cleanly
+                    yield deleted(job_id)
                     return
-            if events:
-                idle = 0.0
-                continue
-            try:
-                if job.status.finished and not await anyio.to_thread.run_sync(
-                    store.events, job_id, after
-                ):
-                    return
-            except StoreUnavailable:
-                pass
-            idle += POLL_S
-            if idle >= KEEPALIVE_S:
-                yield ": keep-alive\n\n"
-                idle = 0.0
-            await asyncio.sleep(POLL_S)
+                if watched.finished:
+                    # finished without a terminal event past ``after`` (older jobs, or the event
+                    # is on its way): give it a moment, then end
+                    finished_at = finished_at or time.monotonic()
+                    if time.monotonic() - finished_at >= FINISHED_GRACE_S:
+                        return
+                if time.monotonic() - quiet_since >= KEEPALIVE_S:
+                    yield ": keep-alive\n\n"
+                    quiet_since = time.monotonic()
+        finally:
+            hub.unwatch(job_id)
 
     response = EventStreamResponse(stream(), headers={"Cache-Control": "no-cache",
                                                       "X-Accel-Buffering": "no"})  # fmt: skip

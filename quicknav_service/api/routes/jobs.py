@@ -52,12 +52,12 @@ def _submitted(job: Job, response: Response) -> JobPublic:
     return public(job)
 
 
-# Submission and lookup handlers are async and call the store directly: each store call is one
-# short Redis round trip or SQLite transaction, cheaper than a hop through the thread pool. Slow
-# work (artifact files, deletes) stays in sync handlers, which FastAPI runs in threads.
+# Every handler is a plain function: FastAPI runs it in its thread pool, so a store call, a
+# checkpoint's hash (an eval's submission) or a slow Redis never holds the event loop that
+# answers /healthz and feeds the event streams.
 @router.post("/train", status_code=202, response_model=JobPublic,
              responses={202: SUBMITTED, **responses(*CHANGE, 409)})  # fmt: skip
-async def submit_train_job(body: TrainJobCreate, jobs: JobsDep, response: Response,
+def submit_train_job(body: TrainJobCreate, jobs: JobsDep, response: Response,
                            idempotency_key: IdemKey = None) -> JobPublic:  # fmt: skip
     """Train from a preset or a full TrainConfig, with dotted-key overrides on top."""
     return _submitted(jobs.submit_train(body, idempotency_key), response)
@@ -65,7 +65,7 @@ async def submit_train_job(body: TrainJobCreate, jobs: JobsDep, response: Respon
 
 @router.post("/sweep", status_code=202, response_model=JobPublic,
              responses={202: SUBMITTED, **responses(*CHANGE, 409)})  # fmt: skip
-async def submit_sweep_job(body: SweepJobCreate, jobs: JobsDep, response: Response,
+def submit_sweep_job(body: SweepJobCreate, jobs: JobsDep, response: Response,
                            idempotency_key: IdemKey = None) -> JobPublic:  # fmt: skip
     """An Optuna sweep: a built-in space or a full SweepConfig, with overrides on top."""
     return _submitted(jobs.submit_sweep(body, idempotency_key), response)
@@ -73,14 +73,14 @@ async def submit_sweep_job(body: SweepJobCreate, jobs: JobsDep, response: Respon
 
 @router.post("/eval", status_code=202, response_model=JobPublic,
              responses={202: SUBMITTED, **responses(*CHANGE, 404, 409)})  # fmt: skip
-async def submit_eval_job(body: EvalJobCreate, jobs: JobsDep, response: Response,
+def submit_eval_job(body: EvalJobCreate, jobs: JobsDep, response: Response,
                           idempotency_key: IdemKey = None) -> JobPublic:  # fmt: skip
     """Evaluate a train job's checkpoint or a baseline on fixed-seed held-out episodes."""
     return _submitted(jobs.submit_eval(body, idempotency_key), response)
 
 
 @router.get("", response_model=JobsPublic)
-async def list_jobs(store: StoreDep, status: JobStatus | None = None, kind: JobKind | None = None,
+def list_jobs(store: StoreDep, status: JobStatus | None = None, kind: JobKind | None = None,
                     limit: Annotated[int, Query(ge=1, le=500)] = 50,
                     offset: Annotated[int, Query(ge=0, le=MAX_LIST_OFFSET)] = 0) -> JobsPublic:  # fmt: skip
     """Jobs, newest first; ``count`` is the number matching the filter."""
@@ -89,14 +89,14 @@ async def list_jobs(store: StoreDep, status: JobStatus | None = None, kind: JobK
 
 
 @router.get("/{job_id}", response_model=JobPublic, responses=responses(404, 409))
-async def read_job(job_id: JobId, jobs: JobsDep) -> JobPublic:
+def read_job(job_id: JobId, jobs: JobsDep) -> JobPublic:
     """One job, by its id or a unique prefix of it."""
     return public(jobs.get(job_id))
 
 
 @router.post("/{job_id}/cancel", response_model=JobPublic,
              responses=responses(*CHANGE, 404, 409))  # fmt: skip
-async def cancel_job(job_id: JobId, jobs: JobsDep, body: CancelRequest | None = None) -> JobPublic:
+def cancel_job(job_id: JobId, jobs: JobsDep, body: CancelRequest | None = None) -> JobPublic:
     """A queued job is cancelled at once; a running one stops at its next chunk boundary. Send
     ``{}`` as a JSON body (or the web view's header): a cross-site form cannot."""
     return public(jobs.cancel(job_id))
