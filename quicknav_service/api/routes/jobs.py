@@ -47,6 +47,12 @@ def public(job: Job) -> JobPublic:
     )  # fmt: skip
 
 
+def rendered(model: JobPublic | JobsPublic) -> Response:
+    """The model as JSON bytes, encoded here in the handler's thread: a page of jobs (their configs
+    included) left to FastAPI would be encoded on the event loop, and hold up every other request."""
+    return Response(model.model_dump_json(), media_type="application/json")
+
+
 def _submitted(job: Job, response: Response) -> JobPublic:
     response.headers["Location"] = f"/jobs/{job.id}"
     return public(job)
@@ -85,13 +91,13 @@ def list_jobs(store: StoreDep, status: JobStatus | None = None, kind: JobKind | 
                     offset: Annotated[int, Query(ge=0, le=MAX_LIST_OFFSET)] = 0) -> JobsPublic:  # fmt: skip
     """Jobs, newest first; ``count`` is the number matching the filter."""
     data, count = store.list(status=status, kind=kind, limit=limit, offset=offset)
-    return JobsPublic(data=[public(j) for j in data], count=count)
+    return rendered(JobsPublic(data=[public(j) for j in data], count=count))
 
 
 @router.get("/{job_id}", response_model=JobPublic, responses=responses(404, 409))
 def read_job(job_id: JobId, jobs: JobsDep) -> JobPublic:
     """One job, by its id or a unique prefix of it."""
-    return public(jobs.get(job_id))
+    return rendered(public(jobs.get(job_id)))
 
 
 @router.post("/{job_id}/cancel", response_model=JobPublic,
