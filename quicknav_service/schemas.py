@@ -43,6 +43,12 @@ class EvalJobCreate(StrictModel):
     seed: int = Field(0, ge=0, le=2**31 - 1, description="episode seed: same seed, same episodes")
     split: Split = Field("test", description="room bank: test (held out) or train")
     deterministic: bool = Field(True, description="act with the policy's mean, not a sample")
+    robustness: bool = Field(
+        False,
+        description="also run the episodes at fixed levels of lidar noise, beam dropout, range bias,"
+        " action latency and wheel asymmetry: success and SPL per level in eval.json's"
+        " 'robustness', drawn in robustness.png",
+    )
     stochastic: bool | None = Field(
         None, deprecated=True,
         description="deprecated: the opposite of 'deterministic'; send 'deterministic' instead",

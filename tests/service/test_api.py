@@ -101,7 +101,8 @@ def test_train_job__sse_artifacts_metrics_then_eval_job(live):
         assert png.content[:8] == b"\x89PNG\r\n\x1a\n"
 
         # split and env overrides reach the worker through the stored config (split once did not)
-        body = {"job_id": job["id"], "episodes": 8, "split": "train", "env": {"max_steps": 30}}
+        body = {"job_id": job["id"], "episodes": 8, "split": "train", "env": {"max_steps": 30},
+                "robustness": True}
         ev = httpx.post(f"{live.url}/jobs/eval", json=body)
         assert ev.status_code == 202, ev.text
         assert ev.json()["config"]["split"] == "train" and ev.json()["config"]["env"]["max_steps"] == 30
@@ -113,8 +114,14 @@ def test_train_job__sse_artifacts_metrics_then_eval_job(live):
             a["name"]
             for a in httpx.get(f"{live.url}/jobs/{ev.json()['id']}/artifacts").json()["artifacts"]
         }
-        assert {"eval.json", "trajectories.png", "episodes.gif"} <= names
+        assert {"eval.json", "trajectories.png", "episodes.gif", "robustness.png"} <= names
         measured = httpx.get(f"{live.url}/jobs/{ev.json()['id']}/artifacts/eval.json").json()
+        # the robustness option reached the worker: a row per level, on the same 8 episodes
+        from quicknav_core.eval.robustness import LEVELS
+
+        assert ev.json()["config"]["robustness"] is True
+        assert [r["label"] for r in measured["robustness"]] == [lv.label for lv in LEVELS]
+        assert {r["episodes"] for r in measured["robustness"]} == {8}
         assert measured["eval_config"]["split"] == "train" and measured["env_config"]["max_steps"] == 30
         assert max(measured["per_episode"]["steps"]) <= 30
         # an env the policy cannot read (another observation length) is refused up front
