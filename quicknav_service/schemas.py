@@ -100,6 +100,11 @@ class JobPublic(BaseModel):
         " named by its artifact); empty when all went well",
     )
     cancel_requested: bool
+    waiting: str | None = Field(
+        None,
+        description="for a queued job that no live worker can run: why it waits (e.g. \"waiting"
+        " for a worker with 2 devices; the 1 live worker has 1 device ...\"); null otherwise",
+    )
     created_at: float
     started_at: float | None
     finished_at: float | None

@@ -30,6 +30,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from quicknav_service.jobs.capabilities import ANNOUNCE_TTL_S, Capabilities, can_run
 from quicknav_service.jobs.models import Job, JobKind, JobStatus, StoreUnavailable
 from quicknav_service.settings import Settings
 
@@ -99,12 +100,48 @@ class Worker:
         self.busy = False
         self._trainers: dict[str, Any] = {}
         self._coordinators: list[threading.Thread] = []  # sweeps this worker follows
+        self._capabilities: Capabilities | None = None
+        self._announced_at = 0.0
         settings.artifacts_dir.mkdir(parents=True, exist_ok=True)
 
     # ------------------------------------------------------------------ loop
+    @property
+    def capabilities(self) -> Capabilities:
+        """What this worker has: backend, local devices (after QUICKNAV_DEVICES), their kind, and
+        the memory budget of one job. Read once (it starts JAX's backend)."""
+        if self._capabilities is None:
+            import jax
+
+            devices = jax.local_devices()
+            self._capabilities = Capabilities(
+                worker=self.id, backend=jax.default_backend(), devices=len(devices),
+                device_kind=devices[0].device_kind if devices else "",
+                memory_mb=self.settings.max_job_memory_mb,
+            )  # fmt: skip
+        return self._capabilities
+
+    def can_run(self, job: Job) -> bool:
+        return can_run(self.capabilities, job)
+
+    def announce(self, force: bool = False) -> None:
+        """Say what this worker has (renewed as it polls; the API explains waiting jobs by it)."""
+        now = time.monotonic()
+        if force or now - self._announced_at >= ANNOUNCE_TTL_S / 3:
+            self.store.announce_worker(self.capabilities.to_dict(), ANNOUNCE_TTL_S)
+            self._announced_at = now
+
+    def withdraw(self) -> None:
+        self._best_effort(self.store.withdraw_worker, self.id)
+
     def run_forever(self, poll_s: float = 0.25) -> None:
         """Claim and run jobs until shut down; nothing a job or the store does ends the loop."""
         _enable_jax_cache(self.settings)
+        try:
+            self._loop(poll_s)
+        finally:
+            self.withdraw()
+
+    def _loop(self, poll_s: float) -> None:
         backoff = poll_s
         while not self.shutdown.is_set():
             try:
@@ -139,21 +176,25 @@ class Worker:
                     ran += 1
                     continue
                 counts = self.store.counts()
+                # jobs queued for other workers (more devices, more memory) are not this one's
+                mine = any(self.can_run(j) for j in self.store.list(status="queued", limit=500)[0])
             except StoreUnavailable as e:
                 log.warning("job store unavailable (%s): waiting", e.reason)
                 self.shutdown.wait(1.0)
                 continue
-            if counts.get("queued", 0) == 0 and counts.get("running", 0) == 0:
+            if not mine and counts.get("running", 0) == 0:
                 break
             self.shutdown.wait(poll_s)
         self.join_coordinators()
+        self.withdraw()
         return ran
 
     def run_once(self) -> bool:
         """Claim and run one job; False if the queue was empty (burst mode for tests)."""
         if self.shutdown.is_set():
             return False
-        job = self.store.claim(self.id, self.settings.lease_s)
+        self.announce()
+        job = self.store.claim(self.id, self.settings.lease_s, can_run=self.can_run)
         if job is None:
             return False
         if job.kind == JobKind.sweep:

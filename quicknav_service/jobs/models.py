@@ -6,6 +6,7 @@ import hashlib
 import json
 import time
 import uuid
+from collections.abc import Callable
 from enum import StrEnum
 from typing import Any, Protocol
 
@@ -98,7 +99,8 @@ class StoreUnavailable(Exception):
 # the store protocol's methods (the ones a guard wraps)
 STORE_METHODS = ("submit", "get", "list", "claim", "heartbeat", "progress", "finish", "release",
                  "cancel", "delete", "publish", "events", "counts", "resolve_id",
-                 "register_endpoint", "endpoints", "unregister_endpoint")  # fmt: skip
+                 "register_endpoint", "endpoints", "unregister_endpoint", "counts_by_kind",
+                 "wait_events", "announce_worker", "live_workers", "withdraw_worker")  # fmt: skip
 
 
 def guard_store_errors(cls, translate):
@@ -165,8 +167,10 @@ class JobStore(Protocol):
     def list(self, status: JobStatus | None = None, kind: JobKind | None = None, limit: int = 50,
              offset: int = 0) -> tuple[list[Job], int]: ...  # fmt: skip
 
-    def claim(self, worker: str, lease_s: float) -> Job | None:
-        """Take the oldest queued job, or reclaim one whose worker's lease expired."""
+    def claim(self, worker: str, lease_s: float,
+              can_run: Callable[[Job], bool] | None = None) -> Job | None:  # fmt: skip
+        """Take the oldest queued job, or reclaim one whose worker's lease expired, among those
+        ``can_run`` accepts (default: any); None if there is none."""
 
     def heartbeat(self, job_id: str, worker: str, lease_s: float) -> bool:
         """Extend the lease; False if the job is no longer this worker's."""
@@ -207,6 +211,15 @@ class JobStore(Protocol):
     def resolve_id(self, prefix: str) -> str:
         """The full id of the one job whose id starts with ``prefix`` (JobNotFound if none,
         AmbiguousId if several)."""
+
+    def announce_worker(self, info: dict[str, Any], ttl_s: float) -> None:
+        """A worker says what it has (``info["worker"]`` names it) for ``ttl_s``."""
+
+    def live_workers(self) -> list[dict[str, Any]]:
+        """The workers whose announcement has not expired, by name."""
+
+    def withdraw_worker(self, worker: str) -> None:
+        """A worker that stops takes its announcement back."""
 
     def register_endpoint(self, endpoint: dict[str, Any], ttl_s: float) -> None:
         """Announce a gRPC Rollout endpoint (``endpoint["worker"]`` names it) for ``ttl_s``

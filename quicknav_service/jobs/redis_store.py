@@ -48,6 +48,7 @@ from quicknav_service.jobs.models import (
 GROUP = "workers"
 SHORT_ID = re.compile(r"[0-9a-f]{4,31}")
 INDEX_VERSION = "2"
+PASS_MAX = 16  # jobs one claim may pass over (others' jobs) before it says there is nothing
 # KEYS: events stream, event counter, job record; ARGV: event JSON, max events. Returns the event's
 # number, or -1 when the job does not exist (nothing is written).
 PUBLISH = """
@@ -242,7 +243,9 @@ class RedisJobStore:
         self.r.xack(self._k("queue"), GROUP, entry_id)
         self.r.xdel(self._k("queue"), entry_id)
 
-    def claim(self, worker, lease_s):
+    def claim(self, worker, lease_s, can_run=None):
+        fits = can_run or (lambda job: True)
+        passed = 0  # entries of jobs this worker cannot run, put back behind the queue
         while True:
             taken = self._take(worker, lease_s)
             if taken is None:
@@ -275,6 +278,8 @@ class RedisJobStore:
                         job.status = JobStatus.cancelled
                         job.finished_at = now
                         return "cancelled"
+                    if not fits(job):
+                        return "pass"
                     job.status = JobStatus.running
                     job.worker = worker
                     job.lease_until = now + lease_s
@@ -293,6 +298,17 @@ class RedisJobStore:
                 return self._read(job_id)
             if outcome == "alive":
                 continue  # its idle time was just reset: the next look finds other entries
+            if outcome == "pass":
+                # another worker's job: a queued one goes back behind the queue for the workers
+                # that can run it; an orphaned one stays pending until its idle time runs out
+                # again, when a worker that can run it reclaims it
+                if not reclaimed:
+                    self._drop_entry(entry_id)
+                    self.r.xadd(self._k("queue"), {"job": job_id})
+                passed += 1
+                if passed >= PASS_MAX:
+                    return None
+                continue
             self._drop_entry(entry_id)
             if outcome in ("failed", "cancelled"):
                 job = self._read(job_id)
@@ -448,6 +464,19 @@ class RedisJobStore:
         got = self.r.xread(streams, count=1, block=max(1, int(timeout_s * 1000)))
         prefix = len(self._k("events", ""))
         return {name[prefix:] for name, _ in got or []}
+
+    # ------------------------------------------------------------------ workers
+    def announce_worker(self, info, ttl_s):
+        self.r.set(self._k("worker", info["worker"]), json.dumps({**info, "seen": time.time()}),
+                   px=max(1, int(ttl_s * 1000)))  # fmt: skip
+
+    def live_workers(self):
+        keys = list(self.r.scan_iter(match=self._k("worker", "*"), count=500))
+        raws = self.r.mget(keys) if keys else []
+        return sorted((json.loads(raw) for raw in raws if raw), key=lambda w: w["worker"])
+
+    def withdraw_worker(self, worker):
+        self.r.delete(self._k("worker", worker))
 
     # ------------------------------------------------------------------ rollout endpoints
     def register_endpoint(self, endpoint, ttl_s):

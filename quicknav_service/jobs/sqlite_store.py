@@ -67,6 +67,11 @@ CREATE TABLE IF NOT EXISTS endpoints (
     expires_at REAL NOT NULL,
     data TEXT NOT NULL
 );
+CREATE TABLE IF NOT EXISTS workers (
+    worker TEXT PRIMARY KEY,
+    expires_at REAL NOT NULL,
+    data TEXT NOT NULL
+);
 CREATE TABLE IF NOT EXISTS sessions (
     key TEXT PRIMARY KEY,
     proof TEXT NOT NULL,
@@ -241,24 +246,18 @@ class SQLiteJobStore:
             ).fetchall()
         return [Job.model_validate_json(r[0]) for r in rows], total
 
-    def claim(self, worker, lease_s):
+    def claim(self, worker, lease_s, can_run=None):
+        fits = can_run or (lambda job: True)
         now = time.time()
         with self._tx() as db:
-            while True:
-                # a job whose worker stopped renewing its lease first: it started before the queue
-                row = db.execute(
-                    "SELECT data FROM jobs WHERE status = 'running' AND lease_until < ?"
-                    " ORDER BY lease_until LIMIT 1", (now,),
-                ).fetchone()  # fmt: skip
-                reclaimed = row is not None
-                if row is None:
-                    row = db.execute(
-                        "SELECT data FROM jobs WHERE status = 'queued' ORDER BY created_at LIMIT 1"
-                    ).fetchone()
-                if row is None:
-                    return None
-                job = Job.model_validate_json(row[0])
-                if reclaimed and job.attempts >= job.max_attempts:
+            # a job whose worker stopped renewing its lease first: it started before the queue
+            orphans = db.execute(
+                "SELECT data FROM jobs WHERE status = 'running' AND lease_until < ?"
+                " ORDER BY lease_until LIMIT 100", (now,),
+            ).fetchall()  # fmt: skip
+            for (raw,) in orphans:
+                job = Job.model_validate_json(raw)
+                if job.attempts >= job.max_attempts:  # any worker may give it up
                     job.status = JobStatus.failed
                     job.error = (f"gave up after {job.attempts} attempts: the worker running it"
                                  f" ({job.worker}) stopped renewing its lease")  # fmt: skip
@@ -269,20 +268,36 @@ class SQLiteJobStore:
                     self._append(
                         db, job.id, {"type": "failed", "status": "failed", "error": job.error}
                     )
-                    continue
-                if reclaimed and job.cancel_requested:
+                elif job.cancel_requested:
                     job.status = JobStatus.cancelled
                     job.finished_at = now
                     self._save(db, job)
                     self._append(db, job.id, {"type": "cancelled", "status": "cancelled"})
-                    continue
-                job.status = JobStatus.running
-                job.worker = worker
-                job.lease_until = now + lease_s
-                job.attempts += 1
-                job.started_at = job.started_at or now
-                self._save(db, job)
-                return job
+                elif fits(job):
+                    return self._start(db, job, worker, lease_s, now)
+            # then the oldest queued job this worker can run
+            offset = 0
+            while True:
+                rows = db.execute(
+                    "SELECT data FROM jobs WHERE status = 'queued' ORDER BY created_at"
+                    " LIMIT 200 OFFSET ?", (offset,),
+                ).fetchall()  # fmt: skip
+                if not rows:
+                    return None
+                for (raw,) in rows:
+                    job = Job.model_validate_json(raw)
+                    if fits(job):
+                        return self._start(db, job, worker, lease_s, now)
+                offset += len(rows)
+
+    def _start(self, db, job: Job, worker: str, lease_s: float, now: float) -> Job:
+        job.status = JobStatus.running
+        job.worker = worker
+        job.lease_until = now + lease_s
+        job.attempts += 1
+        job.started_at = job.started_at or now
+        self._save(db, job)
+        return job
 
     def heartbeat(self, job_id, worker, lease_s):
         with self._tx() as db:
@@ -432,6 +447,27 @@ class SQLiteJobStore:
             if left <= 0:
                 return set()
             time.sleep(min(WAIT_POLL_S, left))
+
+    # ------------------------------------------------------------------ workers
+    def announce_worker(self, info, ttl_s):
+        now = time.time()
+        with self._tx() as db:
+            db.execute(
+                "INSERT INTO workers (worker, expires_at, data) VALUES (?, ?, ?) ON CONFLICT(worker)"
+                " DO UPDATE SET expires_at = excluded.expires_at, data = excluded.data",
+                (info["worker"], now + ttl_s, json.dumps({**info, "seen": now})),
+            )
+
+    def live_workers(self):
+        with self._lock:
+            rows = self._db.execute(
+                "SELECT data FROM workers WHERE expires_at >= ? ORDER BY worker", (time.time(),)
+            ).fetchall()
+        return [json.loads(r[0]) for r in rows]
+
+    def withdraw_worker(self, worker):
+        with self._tx() as db:
+            db.execute("DELETE FROM workers WHERE worker = ?", (worker,))
 
     # ------------------------------------------------------------------ rollout endpoints
     def register_endpoint(self, endpoint, ttl_s):

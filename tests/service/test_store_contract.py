@@ -254,3 +254,38 @@ def test_redis__a_store_written_before_the_indexes_is_indexed_once():
     assert new.list(status="cancelled", kind="eval")[1] == 1
     assert not client.exists(f"{prefix}:status:queued") and client.get(f"{prefix}:index") == "2"
     client.flushdb()
+
+
+def test_claim_takes_only_what_the_worker_can_run_in_queue_order(store):
+    big, _ = store.submit("train", {"n": "big"}, {})
+    small1, _ = store.submit("train", {"n": "small1"}, {})
+    small2, _ = store.submit("train", {"n": "small2"}, {})
+    one_device = lambda job: job.request["n"] != "big"  # noqa: E731
+    assert store.claim("w1", 30, can_run=one_device).id == small1.id
+    assert store.claim("w1", 30, can_run=lambda job: False) is None
+    assert store.get(big.id).status == JobStatus.queued  # passed over, still queued
+    assert store.claim("w1", 30, can_run=one_device).id == small2.id
+    assert store.claim("w1", 30, can_run=one_device) is None
+    assert store.claim("w2", 30).id == big.id  # a worker that can run it takes it
+
+
+def test_an_orphan_waits_for_a_worker_that_can_run_it(store):
+    big, _ = store.submit("train", {"n": "big"}, {})
+    assert store.claim("w2", lease_s=0.2).id == big.id
+    time.sleep(0.4)  # its worker died
+    assert store.claim("w1", lease_s=0.2, can_run=lambda job: False) is None
+    assert store.get(big.id).status == JobStatus.running
+    time.sleep(0.4)
+    again = store.claim("w3", lease_s=0.2)
+    assert again is not None and again.id == big.id and again.attempts == 2
+
+
+def test_worker_announcements_expire_unless_renewed(store):
+    store.announce_worker({"worker": "a", "devices": 1}, ttl_s=0.3)
+    store.announce_worker({"worker": "b", "devices": 2}, ttl_s=5)
+    assert [w["worker"] for w in store.live_workers()] == ["a", "b"]
+    assert store.live_workers()[1]["devices"] == 2
+    time.sleep(0.5)
+    assert [w["worker"] for w in store.live_workers()] == ["b"]
+    store.withdraw_worker("b")
+    assert store.live_workers() == []

@@ -9,6 +9,7 @@ from fastapi import APIRouter, Depends, Header, Query, Response
 
 from quicknav_service.api.deps import JobId, JobsDep, StoreDep, require_token
 from quicknav_service.api.errors import AUTH, CHANGE, STORE, responses
+from quicknav_service.jobs.capabilities import Capabilities, job_needs, waiting_reason
 from quicknav_service.jobs.models import Job, JobKind, JobStatus
 from quicknav_service.schemas import (
     CancelRequest,
@@ -32,19 +33,34 @@ SUBMITTED = {"description": "queued", "headers": {"Location": {
     "description": "the job's URL", "required": True, "schema": {"type": "string"}}}}  # fmt: skip
 
 
-def public(job: Job) -> JobPublic:
-    """A stored job as the API shows it."""
+def public(job: Job, live: list[Capabilities] | None = None) -> JobPublic:
+    """A stored job as the API shows it; with the ``live`` workers, a queued job that none of
+    them can run says why it waits."""
     base = f"/jobs/{job.id}"
     warnings = (job.result or {}).get("warnings") or []
+    waiting = None
+    if live and job.status == JobStatus.queued:
+        waiting = waiting_reason(job_needs(job), live)
     return JobPublic(
         id=job.id, kind=job.kind, status=job.status, progress=job.progress, metrics=job.metrics,
         attempts=job.attempts, worker=job.worker, error=job.error, result=job.result,
-        warnings=[str(w) for w in warnings], cancel_requested=job.cancel_requested,
+        warnings=[str(w) for w in warnings], cancel_requested=job.cancel_requested, waiting=waiting,
         created_at=job.created_at, started_at=job.started_at, finished_at=job.finished_at,
         request=job.request, config=job.config,
         links={"self": base, "events": f"{base}/events", "metrics": f"{base}/metrics",
                "artifacts": f"{base}/artifacts", "cancel": f"{base}/cancel"},
     )  # fmt: skip
+
+
+def live_workers(store) -> list[Capabilities]:
+    """The workers that announced themselves and have not expired."""
+    out = []
+    for info in store.live_workers():
+        try:
+            out.append(Capabilities.from_dict(info))
+        except (KeyError, TypeError):
+            continue  # an announcement of another version
+    return out
 
 
 def rendered(model: JobPublic | JobsPublic) -> Response:
@@ -91,13 +107,16 @@ def list_jobs(store: StoreDep, status: JobStatus | None = None, kind: JobKind | 
                     offset: Annotated[int, Query(ge=0, le=MAX_LIST_OFFSET)] = 0) -> JobsPublic:  # fmt: skip
     """Jobs, newest first; ``count`` is the number matching the filter."""
     data, count = store.list(status=status, kind=kind, limit=limit, offset=offset)
-    return rendered(JobsPublic(data=[public(j) for j in data], count=count))
+    live = live_workers(store) if any(j.status == JobStatus.queued for j in data) else None
+    return rendered(JobsPublic(data=[public(j, live) for j in data], count=count))
 
 
 @router.get("/{job_id}", response_model=JobPublic, responses=responses(404, 409))
-def read_job(job_id: JobId, jobs: JobsDep) -> JobPublic:
-    """One job, by its id or a unique prefix of it."""
-    return rendered(public(jobs.get(job_id)))
+def read_job(job_id: JobId, jobs: JobsDep, store: StoreDep) -> JobPublic:
+    """One job, by its id or a unique prefix of it; a queued job that no live worker can run
+    says why in ``waiting``."""
+    job = jobs.get(job_id)
+    return rendered(public(job, live_workers(store) if job.status == JobStatus.queued else None))
 
 
 @router.post("/{job_id}/cancel", response_model=JobPublic,
