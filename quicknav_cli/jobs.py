@@ -304,12 +304,15 @@ def progress_cell(job) -> str:
 
 
 def latest_cell(job):
-    """The list's last column: why a failed job failed, else its latest numbers."""
+    """The list's last column: why a failed job failed, why a queued one waits (when no live
+    worker can run it), else its latest numbers."""
     from rich.text import Text
 
     if job.error:
         reason = job.error.strip().splitlines()[-1] if job.error.strip() else job.error
         return Text(reason, style="red")
+    if job.waiting:  # queued, and no live worker can run it
+        return Text(job.waiting, style="yellow")
     text = Text(metrics_summary(job.metrics))
     if job.warnings:
         text.append(f"  ({len(job.warnings)} warning{'s' if len(job.warnings) > 1 else ''})",

@@ -377,6 +377,8 @@ class JobFields:
         self.links: dict[str, str] = data.get("links") or {}
         # pictures that failed to render while the numbers were kept (older servers send none)
         self.warnings: list[str] = list(data.get("warnings") or [])
+        # a queued job that no live worker can run: why it waits (older servers send none)
+        self.waiting: str | None = data.get("waiting")
 
     @property
     def phase(self) -> str | None:

@@ -108,6 +108,7 @@ function jobProgress(job) {
     return h("span", { class: "reason", title: job.error || "" }, reason(job.error) || "failed (no reason given)");
   }
   if (job.status === "cancelled") return h("span", { class: "muted" }, `stopped at ${Math.round(100 * job.progress)} %`);
+  if (job.waiting) return h("span", { class: "reason waiting", title: job.waiting }, "waiting for a worker that can run it");
   return progressBar(job.progress);
 }
 
@@ -497,6 +498,7 @@ async function jobPage(id) {
           "trained by ", h("a", { href: `/ui/jobs/${job.config.source}`, id: "source-job" }, `train job ${short(job.config.source)}`))] : null,
         h("dt", {}, "Latest"), h("dd", { style: "grid-column: span 3" }, metricsSummary(job) || "–")),
       job.error ? h("div", { class: "error-box", id: "job-error" }, job.error) : null,
+      job.waiting ? h("div", { class: "note-box", id: "job-waiting" }, job.waiting) : null,
       (job.warnings || []).length ? h("div", { class: "note-box", id: "job-warnings" },
         h("strong", {}, "Warnings: "), "the numbers were kept, but", h("ul", {}, job.warnings.map((w) => h("li", {}, w)))) : null,
       job.result && job.result.note ? h("div", { class: "note-box" }, job.result.note) : null);
