@@ -7,9 +7,10 @@ section sent as an object), the field of a full config, or the preset it came fr
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
-from quicknav_core.config import EvalConfig, SweepConfig, TrainConfig
+from quicknav_core.config import EnvConfig, EvalConfig, SweepConfig, TrainConfig
 from quicknav_service.settings import Settings
 
 Items = list[dict[str, Any]]
@@ -17,6 +18,29 @@ Items = list[dict[str, Any]]
 
 def limit_error(loc: list[str], msg: str) -> dict[str, Any]:
     return {"loc": list(loc), "msg": msg, "type": "limit"}
+
+
+# (field, setting, smallest value the model allows): what every door checks an env against
+ENV_LIMITS = (("grid_size", "max_grid_size", 4), ("lidar_beams", "max_lidar_beams", 1))
+
+
+def over_limit(field: str, value: int, s: Settings, name: str, low: int = 1) -> str | None:
+    """The message for ``value`` of ``field`` above the setting ``name`` (None if within)."""
+    limit = getattr(s, name)
+    if value <= limit:
+        return None
+    return (f"{field}={value} exceeds this server's limit {name}={limit}"
+            f" (QUICKNAV_{name.upper()}); allowed range {low}..{limit}")  # fmt: skip
+
+
+def check_env(env: EnvConfig, s: Settings, loc: Callable[[str], list[str]]) -> Items:
+    """This server's limits on an env (grid, beams), the one place they are checked: train and
+    sweep bodies, eval bodies and gRPC Starts alike. ``loc(field)`` names the field as sent."""
+    items: Items = []
+    for field, name, low in ENV_LIMITS:
+        if (msg := over_limit(field, getattr(env, field), s, name, low)) is not None:
+            items.append(limit_error(loc(field), msg))
+    return items
 
 
 class Origin:
@@ -66,19 +90,10 @@ def check_memory(estimate, s: Settings, loc: list[str]) -> Items:
 def check_train(cfg: TrainConfig, s: Settings, origin: Origin, prefix: str = "") -> Items:
     """This server's limits on a training config (a sweep's base with ``prefix="base."``)."""
     items: Items = []
-    checks = (
-        ("num_envs", cfg.num_envs, s.max_envs, "max_envs"),
-        ("total_steps", cfg.total_steps, s.max_total_steps, "max_total_steps"),
-        ("env.grid_size", cfg.env.grid_size, s.max_grid_size, "max_grid_size"),
-        ("env.lidar_beams", cfg.env.lidar_beams, s.max_lidar_beams, "max_lidar_beams"),
-    )
-    for path, value, limit, name in checks:
-        if value > limit:
-            field = path.rsplit(".", 1)[-1]
-            items.append(limit_error(
-                origin.loc(prefix + path),
-                f"{field}={value} exceeds this server's limit {name}={limit} (QUICKNAV_{name.upper()})",
-            ))
+    for path, name in (("num_envs", "max_envs"), ("total_steps", "max_total_steps")):
+        if (msg := over_limit(path, getattr(cfg, path), s, name)) is not None:
+            items.append(limit_error(origin.loc(prefix + path), msg))
+    items += check_env(cfg.env, s, lambda field: origin.loc(f"{prefix}env.{field}"))
     devices = s.max_devices if cfg.devices == "all" else cfg.devices
     if devices > s.max_devices:
         items.append(limit_error(
@@ -129,17 +144,8 @@ def check_eval(cfg: EvalConfig, s: Settings) -> Items:
             ["episodes"],
             f"episodes={cfg.episodes} exceeds this server's limit max_eval_episodes={s.max_eval_episodes}",
         ))  # fmt: skip
-    if cfg.env is not None and cfg.env.grid_size > s.max_grid_size:
-        items.append(limit_error(
-            ["env", "grid_size"],
-            f"grid_size={cfg.env.grid_size} exceeds this server's limit max_grid_size={s.max_grid_size}",
-        ))  # fmt: skip
-    if cfg.env is not None and cfg.env.lidar_beams > s.max_lidar_beams:
-        items.append(limit_error(
-            ["env", "lidar_beams"],
-            f"lidar_beams={cfg.env.lidar_beams} exceeds this server's limit"
-            f" max_lidar_beams={s.max_lidar_beams}",
-        ))  # fmt: skip
+    if cfg.env is not None:
+        items += check_env(cfg.env, s, lambda field: ["env", field])
     if items:
         return items
     from quicknav_core.train.memory import eval_memory

@@ -25,6 +25,7 @@ from quicknav_client.proto.quicknav.v1 import rollout_pb2_grpc as pb_grpc
 from quicknav_client.tensors import TensorError, decode, encode
 
 from quicknav_service import auth
+from quicknav_service.jobs.limits import check_env, over_limit
 from quicknav_service.settings import Settings
 
 log = logging.getLogger("quicknav.rollout")
@@ -145,18 +146,10 @@ def parse_env_config(start: pb.Start, settings: Settings, base=None):
         raise Refused(
             grpc.StatusCode.INVALID_ARGUMENT, format_items(e.items, prefix="start.config")
         ) from None
-    if config.grid_size > settings.max_grid_size:
-        raise Refused(
-            grpc.StatusCode.INVALID_ARGUMENT,
-            f"start.config.grid_size={config.grid_size} exceeds this server's limit; allowed range"
-            f" 4..{settings.max_grid_size} (QUICKNAV_MAX_GRID_SIZE)",
-        )
-    if config.lidar_beams > settings.max_lidar_beams:
-        raise Refused(
-            grpc.StatusCode.INVALID_ARGUMENT,
-            f"start.config.lidar_beams={config.lidar_beams} exceeds this server's limit; allowed"
-            f" range 1..{settings.max_lidar_beams} (QUICKNAV_MAX_LIDAR_BEAMS)",
-        )
+    problems = check_env(config, settings, lambda field: ["start", "config", field])
+    if problems:
+        raise Refused(grpc.StatusCode.INVALID_ARGUMENT,
+                      "; ".join(f"start.config.{p['msg']}" for p in problems))  # fmt: skip
     return config
 
 
@@ -284,12 +277,8 @@ class RolloutServicer(pb_grpc.RolloutServiceServicer):
                 " lidar_beams and observe_goal",
             )
         num_envs = start.num_envs or 1
-        if num_envs > s.max_envs:
-            raise Refused(
-                grpc.StatusCode.RESOURCE_EXHAUSTED,
-                f"start.num_envs={num_envs} exceeds this server's limit; allowed range"
-                f" 1..{s.max_envs} (QUICKNAV_MAX_ENVS)",
-            )
+        if (msg := over_limit("num_envs", num_envs, s, "max_envs")) is not None:
+            raise Refused(grpc.StatusCode.RESOURCE_EXHAUSTED, f"start.{msg}")
         message_bytes = 2 * num_envs * config.obs_dim * 4
         if message_bytes > s.grpc_max_message_mb * 2**20:
             raise Refused(

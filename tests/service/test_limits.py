@@ -1,0 +1,46 @@
+"""The server's env limits are checked in one place and say the same thing at every door."""
+
+import json
+
+import pytest
+from quicknav_client.proto.quicknav.v1 import rollout_pb2 as pb
+
+from quicknav_service.jobs.limits import check_env
+from quicknav_service.jobs.service import Invalid, JobsService
+from quicknav_service.jobs.sqlite_store import SQLiteJobStore
+from quicknav_service.rollout.servicer import Refused, parse_env_config
+from quicknav_service.schemas import EvalJobCreate, TrainJobCreate
+from quicknav_service.settings import Settings
+
+
+@pytest.fixture
+def service(tmp_path):
+    settings = Settings(data_dir=tmp_path, max_grid_size=32, max_lidar_beams=64)
+    store = SQLiteJobStore(tmp_path / "jobs.db")
+    yield settings, JobsService(store, settings)
+    store.close()
+
+
+def test_limits__train_eval_and_a_rollout_start_refuse_the_same_grid_in_the_same_words(service):
+    settings, jobs = service
+    want = ("grid_size=40 exceeds this server's limit max_grid_size=32 (QUICKNAV_MAX_GRID_SIZE);"
+            " allowed range 4..32")  # fmt: skip
+    with pytest.raises(Invalid) as train:
+        jobs.submit_train(TrainJobCreate(preset="demo", overrides={"env.grid_size": 40, "env.room_size": 20}))
+    assert [(i["loc"], i["msg"]) for i in train.value.items] == [(["overrides", "env.grid_size"], want)]
+    with pytest.raises(Invalid) as evaluation:
+        jobs.submit_eval(EvalJobCreate(policy="oracle", env={"grid_size": 40, "room_size": 20}))
+    assert [(i["loc"], i["msg"]) for i in evaluation.value.items] == [(["env", "grid_size"], want)]
+    with pytest.raises(Refused) as start:
+        parse_env_config(pb.Start(config_json=json.dumps({"grid_size": 40, "room_size": 20, "lidar_beams": 80})), settings)
+    assert str(start.value.message) == (
+        f"start.config.{want}; start.config.lidar_beams=80 exceeds this server's limit"
+        " max_lidar_beams=64 (QUICKNAV_MAX_LIDAR_BEAMS); allowed range 1..64"
+    )
+
+
+def test_limits__an_env_within_them_passes(service):
+    from quicknav_core.config import EnvConfig
+
+    settings, _ = service
+    assert check_env(EnvConfig(grid_size=32, room_size=16, lidar_beams=64), settings, lambda f: [f]) == []
