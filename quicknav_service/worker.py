@@ -1,5 +1,8 @@
 """The worker: claims jobs under a lease, runs them through quicknav_core, reports progress.
 
+This module is the mechanics (the loop, lease, heartbeat, backoff, burst mode, hand-back); what
+each kind of job does is a function registered in ``quicknav_service.job_kinds``.
+
 - A heartbeat thread renews the lease while a job runs; if the lease is lost (another worker took
   the job over) the run stops at its next unit without reporting anything.
 - Training runs through the chunked runner: chunks last at most ``max_chunk_s`` seconds, a
@@ -19,7 +22,6 @@ from __future__ import annotations
 
 import errno
 import logging
-import math
 import os
 import socket
 import threading
@@ -30,6 +32,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from quicknav_service.job_kinds import RUNNERS
 from quicknav_service.jobs.capabilities import ANNOUNCE_TTL_S, Capabilities, can_run
 from quicknav_service.jobs.models import Job, JobKind, JobStatus, StoreUnavailable
 from quicknav_service.settings import Settings
@@ -37,7 +40,6 @@ from quicknav_service.settings import Settings
 log = logging.getLogger("quicknav.worker")
 
 MAX_BACKOFF_S = 10.0
-COORDINATE_POLL_S = 1.0  # how often a sweep looks at its trial batches
 CANCEL_POLL_S = 1.0  # a running job's cancel flag is read at most this often
 
 
@@ -72,24 +74,6 @@ def kept(job_dir: Path) -> str:
     return "kept: " + (", ".join(parts) if parts else "nothing (no checkpoint yet)")
 
 
-
-def export_policy(run_dir: Path, provenance: dict[str, Any], trainer=None) -> list[str]:
-    """Write a finished train job's ``policy.onnx`` and ``policy.json`` beside its checkpoint; a
-    failure is a warning naming the files, never a failed job (the checkpoint is the result)."""
-    try:
-        from quicknav_core.export import export_run
-
-        export_run(run_dir, run_dir, provenance=provenance, trainer=trainer)
-    except Exception as e:  # any failure of the export is reported, none is fatal
-        log.warning("job %s: policy export failed", provenance.get("job_id"), exc_info=True)
-        return [f"policy.onnx, policy.json: not exported ({type(e).__name__}: {e})"[:500]]
-    return []
-
-
-def record_held_out(run_dir: Path, metrics: dict, eval_job_id: str, env: dict) -> None:
-    from quicknav_core.export import record_held_out as record
-
-    record(run_dir, metrics, {"eval_job_id": eval_job_id}, env)
 
 class Worker:
     def __init__(self, store, settings: Settings, worker_id: str | None = None):
@@ -131,7 +115,7 @@ class Worker:
             self._announced_at = now
 
     def withdraw(self) -> None:
-        self._best_effort(self.store.withdraw_worker, self.id)
+        self.best_effort(self.store.withdraw_worker, self.id)
 
     def run_forever(self, poll_s: float = 0.25) -> None:
         """Claim and run jobs until shut down; nothing a job or the store does ends the loop."""
@@ -244,7 +228,7 @@ class Worker:
                 self.busy = False
 
     # ------------------------------------------------------------------ store calls
-    def _best_effort(self, fn: Callable, *args) -> Any:
+    def best_effort(self, fn: Callable, *args) -> Any:
         """A store call whose loss costs nothing lasting (a progress event): skipped in an outage."""
         try:
             return fn(*args)
@@ -252,7 +236,7 @@ class Worker:
             log.warning("job store unavailable (%s): %s skipped", e.reason, fn.__name__)
             return None
 
-    def _until_done(self, fn: Callable, *args, **kwargs) -> Any:
+    def until_done(self, fn: Callable, *args, **kwargs) -> Any:
         """A store call that must land (a job's end): retried with backoff through outages. On a
         shutdown it is abandoned: the lease lapses and another worker finishes the job."""
         backoff = 0.25
@@ -272,7 +256,7 @@ class Worker:
     def job_dir(self, job_id: str) -> Path:
         return self.settings.artifacts_dir / job_id
 
-    def _stopper(self, job: Job, lost: threading.Event) -> Callable[..., str | None]:
+    def stopper(self, job: Job, lost: threading.Event) -> Callable[..., str | None]:
         """Why the job should stop now (lost lease, shutdown, cancel), or None. Cheap to ask
         often: the store is read at most every CANCEL_POLL_S seconds, or whenever ``fresh``
         (at chunk ends, which also write progress and checkpoints)."""
@@ -306,27 +290,21 @@ class Worker:
             " service); submit it again"
         )
 
-    def _report(self, job: Job, progress: float, metrics: dict[str, Any]) -> None:
-        self._best_effort(self.store.progress, job.id, self.id, progress, metrics)
-        self._best_effort(self.store.publish, job.id,
+    def report(self, job: Job, progress: float, metrics: dict[str, Any]) -> None:
+        self.best_effort(self.store.progress, job.id, self.id, progress, metrics)
+        self.best_effort(self.store.publish, job.id,
                           {"type": "progress", "progress": progress, "metrics": metrics})  # fmt: skip
 
-    def _phase(self, job: Job, phase: str) -> None:
+    def phase(self, job: Job, phase: str) -> None:
         """Say what a running job does before its first numbers: ``compiling`` (the jit of its
         first chunk or batch, tens of seconds cold), with the time it began."""
-        self._report(job, job.progress, {"phase": phase, "phase_since": round(time.time(), 3)})
+        self.report(job, job.progress, {"phase": phase, "phase_since": round(time.time(), 3)})
 
     def _execute(self, job: Job, lost: threading.Event) -> None:
-        self._best_effort(self.store.publish, job.id, {
+        self.best_effort(self.store.publish, job.id, {
             "type": "started", "status": "running", "worker": self.id, "attempt": job.attempts})  # fmt: skip
         try:
-            runner = {
-                JobKind.train: self._train,
-                JobKind.eval: self._eval,
-                JobKind.sweep: self._sweep,
-                JobKind.trial: self._trial,
-            }
-            outcome, result = runner[job.kind](job, lost)
+            outcome, result = RUNNERS[job.kind](self, job, lost)
         except Exception as e:
             log.exception("job %s failed", job.id)
             reason = failure_reason(e, self.job_dir(job.id))
@@ -336,105 +314,16 @@ class Worker:
             except OSError:
                 pass  # a full disk: the reason says so, the traceback is in the log
             if not lost.is_set():
-                self._until_done(self.store.finish, job.id, self.id, JobStatus.failed, error=reason)
+                self.until_done(self.store.finish, job.id, self.id, JobStatus.failed, error=reason)
             return
         if outcome == "lost":
             return  # someone else owns the job now
         if outcome == "shutdown":
-            self._until_done(self.store.release, job.id, self.id)
+            self.until_done(self.store.release, job.id, self.id)
         elif outcome == "cancelled":
-            self._until_done(self.store.finish, job.id, self.id, JobStatus.cancelled, result=result)
+            self.until_done(self.store.finish, job.id, self.id, JobStatus.cancelled, result=result)
         else:
-            self._until_done(self.store.finish, job.id, self.id, JobStatus.succeeded, result=result)
-
-    def trainer_for(self, config):
-        """A warm trainer for this exact config (its compiled chunks are reused)."""
-        from quicknav_core.train.trainers import make_trainer
-
-        key = config.model_dump_json()
-        if key not in self._trainers:
-            if len(self._trainers) >= 8:
-                self._trainers.pop(next(iter(self._trainers)))
-            self._trainers[key] = make_trainer(config)
-        return self._trainers[key]
-
-    def _train(self, job: Job, lost: threading.Event):
-        from quicknav_core.config import TrainConfig
-        from quicknav_core.train.run import checkpoint_dir, train_run
-
-        config = TrainConfig.model_validate(self.config_of(job))
-        run_dir = self.job_dir(job.id)
-        resume = checkpoint_dir(run_dir) is not None
-        why = self._stopper(job, lost)
-        stop_reason: dict[str, str] = {}
-
-        def on_chunk(r) -> bool:
-            metrics = {"phase": "training", "chunk": r.chunk, "chunks": r.chunks,
-                       "env_steps": r.env_steps, "total_steps": r.total_steps,
-                       "steps_per_s": r.steps_per_s, **r.metrics}  # fmt: skip
-            self._report(job, r.env_steps / max(r.total_steps, 1), metrics)
-            reason = why(fresh=True)
-            if reason:
-                stop_reason["why"] = reason
-                return True
-            return False
-
-        def interrupt() -> bool:
-            reason = why()
-            if reason:
-                stop_reason["why"] = reason
-            return reason is not None
-
-        if resume:
-            self._best_effort(self.store.publish, job.id, {"type": "resumed", "from_checkpoint": True})
-        self._phase(job, "compiling")
-        summary = train_run(config, run_dir, callback=on_chunk, resume=resume,
-                            trainer=self.trainer_for(config), max_chunk_s=self.settings.max_chunk_s,
-                            interrupt=interrupt,
-                            replay_every_s=self.settings.replay_checkpoint_every_s)  # fmt: skip
-        result = {"env_steps": summary["env_steps"], "total_steps": summary["total_steps"],
-                  "chunks_done": summary["chunks_done"], "final": summary["final"],
-                  "warnings": summary["warnings"]}  # fmt: skip
-        if stop_reason.get("why", "done") == "done" and self.settings.export_policies:
-            provenance = {"job_id": job.id, "preset": job.request.get("preset")}
-            exported = export_policy(run_dir, provenance, self.trainer_for(config))
-            result["warnings"] = [*result["warnings"], *exported]
-        if summary["total_steps"] != config.total_steps:
-            result["note"] = (
-                f"total_steps={config.total_steps:,} is not a whole number of updates"
-                f" (num_envs x num_steps); the run makes {summary['total_steps']:,} env steps"
-            )
-        return stop_reason.get("why", "done"), result
-
-    def _eval(self, job: Job, lost: threading.Event):
-        from quicknav_core.config import EvalConfig
-        from quicknav_core.eval.evaluate import EvalStopped, run_eval
-
-        cfg = EvalConfig.model_validate(self.config_of(job))
-        run_dir = self.job_dir(cfg.source) if cfg.policy == "trained" else None
-        why = self._stopper(job, lost)
-        stop_reason: dict[str, str] = {}
-
-        def on_batch(done: int, total: int) -> bool:
-            self._report(job, done / total,
-                         {"phase": "evaluating", "episodes_done": done, "episodes": total})  # fmt: skip
-            reason = why(fresh=True)
-            if reason:
-                stop_reason["why"] = reason
-            return reason is not None
-
-        self._phase(job, "compiling")
-        try:
-            result, _ = run_eval(cfg, self.job_dir(job.id), run_dir=run_dir, progress=on_batch)
-        except EvalStopped as e:
-            return stop_reason.get("why", "cancelled"), {"episodes_done": e.done, "episodes": e.total}
-        self._report(job, 1.0, result["metrics"])
-        if run_dir is not None and cfg.split == "test" and cfg.deterministic:
-            # the exported policy's manifest names its held-out success (in the env it trained in)
-            self._best_effort(record_held_out, run_dir, result["metrics"], job.id,
-                              cfg.env.model_dump(mode="json"))  # fmt: skip
-        return "done", {"agent": result["agent"], "metrics": result["metrics"],
-                        "warnings": result["warnings"]}  # fmt: skip
+            self.until_done(self.store.finish, job.id, self.id, JobStatus.succeeded, result=result)
 
     def sweep_storage(self, sweep_id: str):
         """The Optuna storage of a sweep job's study, shared by every worker: journal storage on
@@ -453,93 +342,16 @@ class Worker:
             f"sqlite:///{path}", engine_kwargs={"connect_args": {"timeout": 60}}
         )
 
-    def _sweep(self, job: Job, lost: threading.Event):
-        """Coordinate a sweep: create its study, submit its trial batches as child jobs (any
-        worker runs them, all telling the one study), follow them, then write the outputs."""
-        from quicknav_core.config import SweepConfig
-        from quicknav_core.sweep import (
-            best_so_far,
-            finished_count,
-            open_study,
-            write_outputs,
-            write_trials,
-        )
+    def trainer_for(self, config):
+        """A warm trainer for this exact config (its compiled chunks are reused)."""
+        from quicknav_core.train.trainers import make_trainer
 
-        cfg = SweepConfig.model_validate(self.config_of(job))
-        folder = self.job_dir(job.id)
-        folder.mkdir(parents=True, exist_ok=True)
-        (folder / "sweep_config.json").write_text(cfg.model_dump_json(indent=2))
-        study = open_study(cfg, self.sweep_storage(job.id), study_name=f"sweep-{job.id}")
-        children = []
-        for i in range(math.ceil(cfg.trials / cfg.parallel)):
-            size = min(cfg.parallel, cfg.trials - i * cfg.parallel)
-            config = {"parent": job.id, "batch": i, "trials": size, "sweep": cfg.model_dump(mode="json")}
-            # the key makes this idempotent: a coordinator that takes over finds the same children
-            child, _ = self._until_done(self.store.submit, JobKind.trial, {"parent": job.id, "batch": i},
-                                        config, idempotency_key=f"sweep:{job.id}:batch:{i}")  # fmt: skip
-            children.append(child.id)
-        why = self._stopper(job, lost)
-        shown = None
-        while True:
-            reason = why()
-            if reason in ("lost", "shutdown"):
-                return reason, {}
-            jobs = [self._best_effort(self.store.get, c) for c in children]
-            if reason == "cancelled":
-                for c in jobs:
-                    if c is not None and not c.status.finished:
-                        self._best_effort(self.store.cancel, c.id)
-            states = [c.status.value for c in jobs if c is not None]
-            best_value, best_params = best_so_far(study)
-            metrics = {"finished": finished_count(study), "total": cfg.trials,
-                       "batches": len(children), "batches_running": states.count("running"),
-                       "batches_failed": states.count("failed"), "best_value": best_value,
-                       "best_params": best_params}  # fmt: skip
-            if metrics != shown:
-                shown = metrics
-                self._report(job, min(1.0, metrics["finished"] / cfg.trials), metrics)
-                write_trials(study, cfg, folder)
-            if all(c is not None and c.status.finished for c in jobs):
-                break
-            self.shutdown.wait(COORDINATE_POLL_S)
-        summary = write_outputs(study, cfg, folder)
-        summary.update({"batches": len(children), "children": children,
-                        "batches_failed": states.count("failed"),
-                        "batches_cancelled": states.count("cancelled")})  # fmt: skip
-        if reason == "cancelled":
-            return "cancelled", summary
-        if summary["best_value"] is None and states.count("failed"):
-            first = next(c for c in jobs if c.status.value == "failed")
-            raise RuntimeError(f"no trial completed; trial batch {first.id} failed: {first.error}")
-        return "done", summary
-
-    def _trial(self, job: Job, lost: threading.Event):
-        """A batch of a sweep's trials: ask them from the shared study, train, evaluate, tell.
-        Run again after its worker died, it first reruns the trials that worker left unfinished."""
-        from quicknav_core.config import SweepConfig
-        from quicknav_core.sweep import finished_count, open_study, retry_lost, run_batch
-
-        spec = self.config_of(job)
-        cfg = SweepConfig.model_validate(spec["sweep"])
-        parent, tag = spec["parent"], str(spec["batch"])
-        # each batch samples from its own stream (its index; a rerun: also its attempt)
-        stream = 1 + spec["batch"] + 100_003 * (job.attempts - 1)
-        study = open_study(cfg, self.sweep_storage(parent), study_name=f"sweep-{parent}",
-                           stream=stream)  # fmt: skip
-        retried = retry_lost(study, tag)
-        why = self._stopper(job, lost)
-        todo = spec["trials"] - finished_count(study, tag)
-        if todo > 0 and why(fresh=True) is None:
-            run_batch(study, cfg, todo, tag=tag, stop=lambda: why() is not None)
-        reason = why(fresh=True)
-        if reason in ("lost", "shutdown"):
-            return reason, {}
-        mine = [t for t in study.get_trials(deepcopy=False) if t.user_attrs.get("batch") == tag]
-        result = {"parent": parent, "batch": spec["batch"], "trials": finished_count(study, tag),
-                  "retried": retried,
-                  "values": {str(t.number): t.value for t in mine if t.value is not None}}  # fmt: skip
-        return reason or "done", result
-
+        key = config.model_dump_json()
+        if key not in self._trainers:
+            if len(self._trainers) >= 8:
+                self._trainers.pop(next(iter(self._trainers)))
+            self._trainers[key] = make_trainer(config)
+        return self._trainers[key]
 
 def _enable_jax_cache(settings: Settings) -> None:
     """The worker's devices (QUICKNAV_DEVICES); JAX's persistent compilation cache in the data
