@@ -115,13 +115,11 @@ def expose_cpu_devices(count: int) -> None:
 
 
 def enable_compilation_cache() -> None:
-    """Turn on JAX's persistent compilation cache (CLI processes only; library code never does)."""
-    import jax
+    """Turn on JAX's persistent compilation cache for this command: QUICKNAV_JAX_CACHE (empty:
+    none), default ~/.cache/quicknav/jax (``quicknav_core.compile_cache``)."""
+    from quicknav_core.compile_cache import enable_compilation_cache as enable
 
-    cache = os.environ.get("QUICKNAV_JAX_CACHE", str(Path.home() / ".cache" / "quicknav" / "jax"))
-    if cache:
-        jax.config.update("jax_compilation_cache_dir", cache)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    enable(os.environ.get("QUICKNAV_JAX_CACHE", str(Path.home() / ".cache" / "quicknav" / "jax")))
 
 
 def service_settings(**overrides):

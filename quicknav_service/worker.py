@@ -359,6 +359,7 @@ def _enable_jax_cache(settings: Settings) -> None:
     test session's); and the room-bank cache (a bank is carved once per config, then read back)."""
     import jax
 
+    from quicknav_core.compile_cache import enable_compilation_cache
     from quicknav_core.env.rooms import set_bank_cache
 
     if settings.devices is not None:
@@ -367,16 +368,7 @@ def _enable_jax_cache(settings: Settings) -> None:
         jax.config.update("jax_rocm_visible_devices", settings.devices)
     set_bank_cache(settings.data_dir / "room-banks")
 
-    if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
-        jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"])
-    else:
-        path = settings.data_dir / "jax-cache"
-        try:
-            path.mkdir(parents=True, exist_ok=True)
-        except OSError:
-            return  # no cache rather than no worker
-        jax.config.update("jax_compilation_cache_dir", str(path.resolve()))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    enable_compilation_cache(settings.data_dir / "jax-cache")
 
 
 def start_worker_threads(

@@ -86,3 +86,27 @@ def test_resolve__rejax_runs_past_its_int32_step_count_are_refused():
     ok = resolve_train({"preset": "paper-ppo", "overrides": {
         "total_steps": 3_000_000_000, "algorithm.implementation": "quicknav"}})  # fmt: skip
     assert ok.total_steps == 3_000_000_000
+
+
+def test_compilation_cache__one_setup_for_the_cli_and_the_workers(tmp_path, monkeypatch):
+    """Both doors turn the cache on through quicknav_core.compile_cache: the environment's
+    JAX_COMPILATION_CACHE_DIR wins, else the folder given (made), and an unusable one means no
+    cache rather than no run."""
+    import jax
+
+    from quicknav_core.compile_cache import enable_compilation_cache
+
+    before = jax.config.jax_compilation_cache_dir
+    try:
+        monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR", raising=False)
+        assert enable_compilation_cache(tmp_path / "mine") == tmp_path / "mine"
+        assert (tmp_path / "mine").is_dir()
+        assert jax.config.jax_compilation_cache_dir == str((tmp_path / "mine").resolve())
+        monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", str(tmp_path / "shared"))
+        assert enable_compilation_cache(tmp_path / "mine") == tmp_path / "shared"
+        monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR")
+        (tmp_path / "file").write_text("")
+        assert enable_compilation_cache(tmp_path / "file" / "below") is None
+        assert enable_compilation_cache(None) is None
+    finally:
+        jax.config.update("jax_compilation_cache_dir", before)

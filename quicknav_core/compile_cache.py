@@ -1,0 +1,29 @@
+"""JAX's persistent compilation cache, turned on in one place for the processes that want it (the
+CLI's commands, the service's workers). Library code never turns it on by itself."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+# programs that compile faster than this are not worth a file
+MIN_COMPILE_TIME_S = 0.5
+
+
+def enable_compilation_cache(folder: Path | str | None) -> Path | None:
+    """Cache compiled programs in ``folder`` (made if missing). ``JAX_COMPILATION_CACHE_DIR`` in
+    the environment wins (an operator's shared cache, a test session's). Returns the folder in
+    use; None when there is none (``folder`` None, or it cannot be made: no cache, never no run)."""
+    import jax
+
+    chosen = os.environ.get("JAX_COMPILATION_CACHE_DIR") or folder
+    if not chosen:
+        return None
+    path = Path(chosen)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return None
+    jax.config.update("jax_compilation_cache_dir", str(path.resolve()))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_TIME_S)
+    return path
