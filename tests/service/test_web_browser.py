@@ -390,3 +390,25 @@ def test_browser__jobs_page_shows_a_failed_jobs_reason_not_a_full_bar(server, pa
         return [log.scrollWidth, log.clientWidth, document.documentElement.scrollWidth, innerWidth]; }""")
     assert widths[0] <= widths[1] and widths[2] <= widths[3], f"the event log overflows: {widths}"
     page.screenshot(path=shots / "job-failed-events.png", full_page=True)
+
+
+def test_browser__a_job_no_worker_can_run_says_why_it_waits(server, page, data_dir, shots):
+    from quicknav_service.jobs.models import JobKind
+    from quicknav_service.jobs.sqlite_store import SQLiteJobStore
+    from tests.service.test_worker_capabilities import _config
+
+    # two devices: the server's worker has one (the API would refuse it, QUICKNAV_MAX_DEVICES=1)
+    store = SQLiteJobStore(data_dir / "jobs.db")
+    job, _ = store.submit(JobKind.train, {"preset": "demo"}, _config(2))
+    try:
+        page.goto(server + "/")
+        row = page.locator(f'#jobs tr[data-id="{job.id}"][data-status="queued"]')
+        row.wait_for(timeout=10_000)
+        assert row.locator(".reason.waiting").inner_text() == "waiting for a worker that can run it"
+        page.goto(f"{server}/ui/jobs/{job.id}")
+        note = page.locator("#job-waiting")
+        note.wait_for(timeout=10_000)
+        assert note.inner_text().startswith("waiting for a worker with 2 devices; the 1 live worker has 1 device")
+        page.screenshot(path=shots / "job-waiting.png", full_page=True)
+    finally:
+        httpx.post(f"{server}/jobs/{job.id}/cancel", headers=AUTH, json={})
