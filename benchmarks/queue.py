@@ -7,7 +7,8 @@ commit, run with this checkout's environment), on Redis DB 11 (flushed before an
    and sweep jobs; 2 % of them run and finished);
 2. starts the tree's API (`quicknav serve --no-worker --no-grpc`, one process) and measures
    `GET /jobs` (a page of 50, `?limit=1`, a status-and-kind filter) p50/p99, a `/metrics`
-   scrape, `/healthz` p50/p99 while four clients list jobs without pause, and the API process's
+   scrape, `/healthz` p50/p99 while four clients list jobs without pause and an eval of a train
+   job with a 448 MiB checkpoint is submitted (its hash is checked then), and the API process's
    CPU (% of one core, from /proc) while 500 SSE viewers follow one running job and nothing
    happens, the viewers held by a separate process;
 3. reports the API's resident memory at the end.
@@ -26,6 +27,7 @@ import os
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -53,6 +55,35 @@ for i in range(n):
             store.publish(taken.id, {"type": "progress", "progress": 1.0})
             store.finish(taken.id, "filler", "succeeded", result={})
 print(round(time.time() - t0, 1))
+"""
+
+TRAINED = """
+import hashlib, json, os, sys, time
+from pathlib import Path
+from quicknav_core.config import get_preset
+from quicknav_core.train.run import CHECKPOINT_DIR, META_FILE, STATE_FILE
+from quicknav_service.jobs.models import JobStatus
+from quicknav_service.jobs.redis_store import RedisJobStore
+url, data, mb = sys.argv[1], Path(sys.argv[2]), int(sys.argv[3])
+store = RedisJobStore(url)
+cfg = get_preset("demo").model_dump(mode="json")
+job, _ = store.submit("train", {"preset": "demo"}, cfg)
+def done(j, pipe):
+    j.status = JobStatus.succeeded
+    j.finished_at = time.time()
+store._update(job.id, done)
+folder = data / "artifacts" / job.id / CHECKPOINT_DIR
+folder.mkdir(parents=True)
+h, size = hashlib.sha256(), 0
+with open(folder / STATE_FILE, "wb") as f:
+    for _ in range(mb):
+        block = os.urandom(2**20)
+        h.update(block)
+        f.write(block)
+        size += len(block)
+(folder / META_FILE).write_text(json.dumps({"chunk": 1, "env_steps": 1, "state_bytes": size,
+                                            "state_sha256": h.hexdigest()}))
+print(job.id)
 """
 
 LISTERS = """
@@ -120,6 +151,8 @@ def main() -> None:
     ap.add_argument("--samples", type=int, default=30)
     ap.add_argument("--viewers", type=int, default=500)
     ap.add_argument("--port", type=int, default=8791)
+    ap.add_argument("--checkpoint-mb", type=int, default=448,
+                    help="size of the trained job's checkpoint an eval is submitted for")
     ap.add_argument("--lister-nice", type=int, default=0,
                     help="niceness of the listing clients' process (they share the 2 cores)")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "queue.json")
@@ -163,20 +196,37 @@ def main() -> None:
         out["metrics_scrape"] = timed(client, "/metrics", slow)
         print(f"[{args.label}] list {out['list_page_50']}, metrics {out['metrics_scrape']}", flush=True)
 
-        # /healthz while four clients (another process) list without pause
+        # /healthz while four clients (another process) list without pause, and an eval of a
+        # train job with a large checkpoint (its hash checked at submission) is submitted
+        trained = subprocess.run([sys.executable, "-c", TRAINED, REDIS_URL, data,
+                                  str(args.checkpoint_mb)], env=env, capture_output=True, text=True,
+                                 check=True).stdout.strip()  # fmt: skip
         listers = subprocess.Popen(["nice", "-n", str(args.lister_nice), sys.executable, "-c", LISTERS, url, "4"], env=env,
                                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
         time.sleep(1.0)
-        health, end = [], time.time() + 10
+        health, end, submitted = [], time.time() + 10, {}
+
+        def submit_eval():
+            time.sleep(3)
+            t0 = time.perf_counter()
+            r = httpx.post(f"{url}/jobs/eval", json={"job_id": trained, "episodes": 1}, timeout=120)
+            submitted.update(status=r.status_code, seconds=round(time.perf_counter() - t0, 3))
+
+        submitter = threading.Thread(target=submit_eval)
+        submitter.start()
         while time.time() < end:
             t0 = time.perf_counter()
             client.get("/healthz").raise_for_status()
             health.append(time.perf_counter() - t0)
             time.sleep(0.02)
+        submitter.join()
         listers.kill()
         listers.wait()
         out["healthz_under_listing"] = {"n": len(health), "p50_ms": round(1000 * pct(health, 50), 2),
-                                        "p99_ms": round(1000 * pct(health, 99), 2)}  # fmt: skip
+                                        "p99_ms": round(1000 * pct(health, 99), 2),
+                                        "max_ms": round(1000 * max(health), 2),
+                                        "eval_submission": {"checkpoint_mb": args.checkpoint_mb,
+                                                            **submitted}}  # fmt: skip
         print(f"[{args.label}] healthz with 4 listers {out['healthz_under_listing']}", flush=True)
 
         # idle SSE viewers of one running job
