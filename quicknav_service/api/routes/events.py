@@ -141,8 +141,9 @@ async def job_events(job_id: JobId, request: Request, store: StoreDep, jobs: Job
                 await hub.wait(watched, after, FINISHED_GRACE_S if watched.finished else max(0.0, left))
                 try:
                     events = await hub.events(job_id, watched, after)
-                except StoreUnavailable:
-                    events = []
+                except StoreUnavailable:  # an outage while behind the hub: wait, then again
+                    await asyncio.sleep(OUTAGE_POLL_S)
+                    continue
                 for seq, ev in events:
                     after = seq
                     yield sse(seq, ev)
