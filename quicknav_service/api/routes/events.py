@@ -143,7 +143,7 @@ async def job_events(job_id: JobId, request: Request, store: StoreDep, jobs: Job
                     events = await hub.events(job_id, watched, after)
                 except StoreUnavailable:  # an outage while behind the hub: wait, then again
                     await asyncio.sleep(OUTAGE_POLL_S)
-                    continue
+                    events = []
                 for seq, ev in events:
                     after = seq
                     yield sse(seq, ev)
