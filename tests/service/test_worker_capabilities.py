@@ -20,7 +20,7 @@ from quicknav_service.jobs.redis_store import RedisJobStore
 from quicknav_service.jobs.sqlite_store import SQLiteJobStore
 from tests.service.conftest import LiveServer
 
-REDIS_URL = "redis://127.0.0.1:6379/13"  # this test's own DB index
+REDIS_URL = "redis://127.0.0.1:6379/9"  # this test's own DB index
 
 
 def _config(devices: int) -> dict:
