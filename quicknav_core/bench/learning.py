@@ -352,6 +352,14 @@ def _targets(results: dict[str, list[dict[str, Any]]], seeds: int) -> list[dict[
     return targets
 
 
+def _num(value) -> str:
+    """A number as the report prints it; an undefined one (no successes: null in report.json,
+    NaN before it is written) as '-'."""
+    if value is None or value != value:
+        return "-"
+    return f"{value:.3g}"
+
+
 def build_report(
     results: dict[str, list[dict[str, Any]]], base: dict[str, dict[str, Any]], seeds: int,
     profile_path: Path | None = None,
@@ -423,9 +431,9 @@ def build_report(
             if m:
                 data["baselines"][f"{policy}-table{table}"] = m
                 lines.append(
-                    f"| {policy} (baseline) | paper | - | {m['success_rate']:.3g} | {m['spl']:.3g} | "
-                    f"{m['steps_to_goal_successes']['mean']:.3g} | {m['steps_to_goal_failures_as_limit']['mean']:.3g} | "
-                    f"{'1' if policy == 'oracle' else '-'} | {m['return']['mean']:.3g} | {m['collisions_per_episode']:.3g} | - | - | - | - |"
+                    f"| {policy} (baseline) | paper | - | {_num(m['success_rate'])} | {_num(m['spl'])} | "
+                    f"{_num(m['steps_to_goal_successes']['mean'])} | {_num(m['steps_to_goal_failures_as_limit']['mean'])} | "
+                    f"{'1' if policy == 'oracle' else '-'} | {_num(m['return']['mean'])} | {_num(m['collisions_per_episode'])} | - | - | - | - |"
                 )  # fmt: skip
         lines.append("")
         agg_lines.append("")

@@ -250,3 +250,17 @@ def test_bench_learning__a_seed_another_process_replaced_is_not_written_back_sta
     on_disk = json.loads((out / "report.json").read_text())
     assert on_disk["rows"]["paper-mlp"]["runs"][0]["metrics"]["success_rate"] == 0.97
     assert not list(out.glob(".*.tmp"))  # atomic writes leave no temporary file behind
+
+
+def test_build_report__a_baseline_with_no_successes_prints_a_dash():
+    """The random baseline's steps over successes is undefined: NaN when just measured, null once
+    read back from report.json. Either way the report is written (a read-back null once crashed
+    the writer after a 10-minute training)."""
+    from quicknav_core.bench.learning import build_report
+
+    for undefined in (None, float("nan")):
+        random = _metrics(0.0)
+        random["steps_to_goal_successes"] = {"mean": undefined, "std": undefined}
+        markdown, _ = build_report({}, {"random-table1": {"metrics": random}}, 3)
+        line = next(x for x in markdown.splitlines() if x.startswith("| random (baseline)"))
+        assert "| 0 | 0.9 | - | 70 |" in line, line
