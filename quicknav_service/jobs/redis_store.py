@@ -7,6 +7,8 @@ Keys (``prefix`` defaults to ``quicknav``):
   {p}:kd:{kind}       sorted set of job ids per kind, by creation time
   {p}:sk:{status}:{kind}  the same per (status, kind)
   {p}:index           the version of those indexes (a store written before them is indexed once)
+  {p}:worker:{name}   a worker's announcement of what it has (expires); {p}:workers-live names
+                      the announced workers by the end of their announcement
   {p}:idem:{key}      idempotency key -> job id
   {p}:queue           stream of job ids; consumer group "workers" delivers each to one worker
   {p}:events:{id}     capped stream of progress events, ids "<seq>-1" so Last-Event-ID is a number
@@ -466,17 +468,27 @@ class RedisJobStore:
         return {name[prefix:] for name, _ in got or []}
 
     # ------------------------------------------------------------------ workers
+    # a sorted set of worker names by the end of their announcement, beside each announcement:
+    # listing the live ones reads the fleet, never the whole key space
     def announce_worker(self, info, ttl_s):
-        self.r.set(self._k("worker", info["worker"]), json.dumps({**info, "seen": time.time()}),
-                   px=max(1, int(ttl_s * 1000)))  # fmt: skip
+        now = time.time()
+        with self.r.pipeline() as pipe:
+            pipe.set(self._k("worker", info["worker"]), json.dumps({**info, "seen": now}),
+                     px=max(1, int(ttl_s * 1000)))  # fmt: skip
+            pipe.zadd(self._k("workers-live"), {info["worker"]: now + ttl_s})
+            pipe.zremrangebyscore(self._k("workers-live"), "-inf", now)
+            pipe.execute()
 
     def live_workers(self):
-        keys = list(self.r.scan_iter(match=self._k("worker", "*"), count=500))
-        raws = self.r.mget(keys) if keys else []
+        names = self.r.zrangebyscore(self._k("workers-live"), time.time(), "+inf")
+        raws = self.r.mget([self._k("worker", n) for n in names]) if names else []
         return sorted((json.loads(raw) for raw in raws if raw), key=lambda w: w["worker"])
 
     def withdraw_worker(self, worker):
-        self.r.delete(self._k("worker", worker))
+        with self.r.pipeline() as pipe:
+            pipe.delete(self._k("worker", worker))
+            pipe.zrem(self._k("workers-live"), worker)
+            pipe.execute()
 
     # ------------------------------------------------------------------ rollout endpoints
     def register_endpoint(self, endpoint, ttl_s):
