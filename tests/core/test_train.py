@@ -10,7 +10,7 @@ import pytest
 from typer.testing import CliRunner
 
 from quicknav_cli.main import app
-from quicknav_core.config import TrainConfig
+from quicknav_core.config import TrainConfig, get_preset
 from quicknav_core.networks import gaussian_log_prob
 from quicknav_core.train import make_trainer, read_metrics, train_run
 from quicknav_core.train.recurrent_ppo import RecurrentPPO
@@ -249,3 +249,25 @@ def tensorboard_scalars(folder) -> dict[str, list[tuple[int, float]]]:
             for v in event.summary.value:
                 out.setdefault(v.tag, []).append((event.step, v.simple_value))
     return out
+
+
+@pytest.mark.parametrize("combo", ["ppo-mlp (rejax)", "ppo-lstm", "sac-mlp"])
+def test_randomized_env__trains_with_every_trainer_family(combo, tmp_path):
+    """What paper-ppo-robust names trains: the perturbations ride in the env state through rejax's
+    PPO and SAC and QuickNav's recurrent PPO, and the checkpoint carries the randomised config."""
+    network, algorithm = COMBOS[combo]
+    cfg = tiny(network, algorithm)
+    randomize = get_preset("paper-ppo-robust").env.randomize
+    assert randomize is not None and randomize.latency_steps == (0, 2)
+    cfg = cfg.model_copy(update={"env": cfg.env.model_copy(update={"randomize": randomize})})
+    cfg = TrainConfig.model_validate(cfg.model_dump())
+    if algorithm and algorithm["name"] == "sac":
+        cfg = cfg.model_copy(update={"total_steps": 256, "chunk_steps": 128})
+    trainer = make_trainer(cfg)
+    assert trainer.env.randomized
+    summary = train_run(cfg, tmp_path, trainer=trainer)
+    assert summary["chunks_done"] == 2
+    state = trainer.from_bytes((tmp_path / "checkpoint" / "state.msgpack").read_bytes())
+    assert all(bool(jnp.isfinite(x).all()) for x in jax.tree.leaves(trainer.policy(state).params))
+    stored = TrainConfig.model_validate_json((tmp_path / "config.json").read_text())
+    assert stored.env.randomize == randomize
