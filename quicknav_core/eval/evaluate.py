@@ -70,7 +70,7 @@ def evaluate(
     }
     if cfg.robustness:
         later = None if progress is None else (lambda done, _n: progress(cfg.episodes + done, total))
-        result["robustness"] = run_robustness(env_config, agent, cfg, later)
+        result["robustness"] = run_robustness(env_config, agent, cfg, later, params)
     if out_dir is not None:
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)

@@ -76,15 +76,21 @@ def robustness_levels(env_config: EnvConfig) -> list[tuple[Level, EnvConfig]]:
 
 def run_robustness(
     env_config: EnvConfig, agent: Agent, cfg: EvalConfig,
-    progress: Callable[[int, int], bool | None] | None = None,
+    progress: Callable[[int, int], bool | None] | None = None, params=None,
 ) -> list[dict[str, Any]]:  # fmt: skip
     """Evaluate ``agent`` at every level on ``cfg``'s episodes: one row per level.
 
-    ``progress(done, total)`` counts the episodes of all levels together."""
+    ``progress(done, total)`` counts the episodes of all levels together; ``params`` are the
+    plain evaluation's (its room bank is reused, not built again)."""
     levels = robustness_levels(env_config)
     plain = cfg.model_copy(update={"gif_episodes": 0, "pictures": False})
     # every level is the same program and room bank with other ranges: build once, swap the ranges
-    env, base_params = levels[0][1].build(cfg.split)
+    if params is None:
+        env, base_params = levels[0][1].build(cfg.split)
+    else:
+        from quicknav_core.env.quicknav import QuickNavEnv
+
+        env, base_params = QuickNavEnv(levels[0][1]), params
     rows = []
     for i, (level, level_env) in enumerate(levels):
         params = base_params.replace(randomize=randomize_numbers(level_env))
