@@ -65,10 +65,14 @@ def export_policy(run_dir: Path, provenance: dict[str, Any], trainer=None) -> li
     return []
 
 
-def record_held_out(run_dir: Path, metrics: dict, eval_job_id: str, env: dict) -> None:
+def record_held_out(worker: Worker, source: str, run_dir: Path, metrics: dict, eval_job_id: str,
+                    env: dict) -> None:  # fmt: skip
+    """Write an evaluation's held-out figures into the source's policy manifest (and publish it)."""
+    from quicknav_core.export import MANIFEST_FILE
     from quicknav_core.export import record_held_out as record
 
-    record(run_dir, metrics, {"eval_job_id": eval_job_id}, env)
+    if record(run_dir, metrics, {"eval_job_id": eval_job_id}, env) and worker.artifacts.remote:
+        worker.artifacts.save_file(source, run_dir / MANIFEST_FILE, MANIFEST_FILE)
 
 
 @runs(JobKind.train)
@@ -78,7 +82,8 @@ def train(worker: Worker, job: Job, lost: threading.Event) -> Outcome:
     from quicknav_core.train.run import checkpoint_dir, train_run
 
     config = TrainConfig.model_validate(worker.config_of(job))
-    run_dir = worker.job_dir(job.id)
+    # the job's folder with its last published checkpoint (written here, or by a worker elsewhere)
+    run_dir = worker.artifacts.restore(job.id)
     resume = checkpoint_dir(run_dir) is not None
     why = worker.stopper(job, lost)
     stop_reason: dict[str, str] = {}
@@ -106,7 +111,8 @@ def train(worker: Worker, job: Job, lost: threading.Event) -> Outcome:
     summary = train_run(config, run_dir, callback=on_chunk, resume=resume,
                         trainer=worker.trainer_for(config), max_chunk_s=worker.settings.max_chunk_s,
                         interrupt=interrupt,
-                        replay_every_s=worker.settings.replay_checkpoint_every_s)  # fmt: skip
+                        replay_every_s=worker.settings.replay_checkpoint_every_s,
+                        on_checkpoint=lambda _: worker.artifacts.save(job.id, checkpoint_only=True))  # fmt: skip
     result = {"env_steps": summary["env_steps"], "total_steps": summary["total_steps"],
               "chunks_done": summary["chunks_done"], "final": summary["final"],
               "warnings": summary["warnings"]}  # fmt: skip
@@ -119,6 +125,8 @@ def train(worker: Worker, job: Job, lost: threading.Event) -> Outcome:
             f"total_steps={config.total_steps:,} is not a whole number of updates"
             f" (num_envs x num_steps); the run makes {summary['total_steps']:,} env steps"
         )
+    if stop_reason.get("why") != "lost":
+        worker.artifacts.save(job.id)  # the curve, the exported policy, TensorBoard's events
     return stop_reason.get("why", "done"), result
 
 @runs(JobKind.eval)
@@ -128,7 +136,12 @@ def evaluate(worker: Worker, job: Job, lost: threading.Event) -> Outcome:
     from quicknav_core.eval.evaluate import EvalStopped, run_eval
 
     cfg = EvalConfig.model_validate(worker.config_of(job))
-    run_dir = worker.job_dir(cfg.source) if cfg.policy == "trained" else None
+    run_dir = None
+    if cfg.policy == "trained":
+        run_dir = worker.artifacts.run_copy(cfg.source)  # a local copy when the store is remote
+        if run_dir is None:
+            raise FileNotFoundError(f"train job {cfg.source} has no checkpoint in the artifact"
+                                    f" store {worker.artifacts.url}")  # fmt: skip
     why = worker.stopper(job, lost)
     stop_reason: dict[str, str] = {}
 
@@ -145,11 +158,12 @@ def evaluate(worker: Worker, job: Job, lost: threading.Event) -> Outcome:
         result, _ = run_eval(cfg, worker.job_dir(job.id), run_dir=run_dir, progress=on_batch)
     except EvalStopped as e:
         return stop_reason.get("why", "cancelled"), {"episodes_done": e.done, "episodes": e.total}
+    worker.artifacts.save(job.id)
     worker.report(job, 1.0, result["metrics"])
     if run_dir is not None and cfg.split == "test" and cfg.deterministic:
         # the exported policy's manifest names its held-out success (in the env it trained in)
-        worker.best_effort(record_held_out, run_dir, result["metrics"], job.id,
-                          cfg.env.model_dump(mode="json"))  # fmt: skip
+        worker.best_effort(record_held_out, worker, cfg.source, run_dir, result["metrics"], job.id,
+                           cfg.env.model_dump(mode="json"))  # fmt: skip
     return "done", {"agent": result["agent"], "metrics": result["metrics"],
                     "warnings": result["warnings"]}  # fmt: skip
 
@@ -201,10 +215,12 @@ def sweep(worker: Worker, job: Job, lost: threading.Event) -> Outcome:
             shown = metrics
             worker.report(job, min(1.0, metrics["finished"] / cfg.trials), metrics)
             write_trials(study, cfg, folder)
+            publish_soon(worker, job.id)
         if all(c is not None and c.status.finished for c in jobs):
             break
         worker.shutdown.wait(COORDINATE_POLL_S)
     summary = write_outputs(study, cfg, folder)
+    worker.artifacts.save(job.id)
     summary.update({"batches": len(children), "children": children,
                     "batches_failed": states.count("failed"),
                     "batches_cancelled": states.count("cancelled")})  # fmt: skip
@@ -214,6 +230,15 @@ def sweep(worker: Worker, job: Job, lost: threading.Event) -> Outcome:
         first = next(c for c in jobs if c.status.value == "failed")
         raise RuntimeError(f"no trial completed; trial batch {first.id} failed: {first.error}")
     return "done", summary
+
+def publish_soon(worker: Worker, job_id: str) -> None:
+    """A sweep's trials so far, published as they change (an outage skips it: the end retries)."""
+    try:
+        if worker.artifacts.remote:
+            worker.artifacts.save(job_id)
+    except Exception as e:  # ArtifactUnavailable: what the sweep finds is in its study
+        log.warning("sweep %s: its trials so far were not published (%s)", job_id, e)
+
 
 @runs(JobKind.trial)
 def trial(worker: Worker, job: Job, lost: threading.Event) -> Outcome:

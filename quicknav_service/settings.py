@@ -21,6 +21,16 @@ class Settings(BaseSettings):
     redis_url: str | None = Field(
         None, description="redis://host:port/db; unset = embedded SQLite store"
     )
+    artifacts_url: str | None = Field(
+        None, description="s3://bucket[/prefix]: jobs' files on an S3-compatible object store"
+        " (credentials and endpoint from AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY,"
+        " AWS_ENDPOINT_URL); unset = the artifacts folder under data_dir",
+    )  # fmt: skip
+    artifacts_retry_s: float = Field(
+        60.0, ge=0, le=86_400,
+        description="a job retries an upload to the artifact store this long through an outage"
+        " before it fails with a reason naming the store",
+    )  # fmt: skip
     api_token: str | None = Field(
         None, min_length=8, description="Bearer token required on job endpoints"
     )
@@ -129,6 +139,10 @@ class Settings(BaseSettings):
                 f"QUICKNAV_HEARTBEAT_S={self.heartbeat_s} must be below QUICKNAV_LEASE_S={self.lease_s}"
                 " (a lease must be renewed before it expires)"
             )
+        if self.artifacts_url is not None:
+            from quicknav_service.artifacts.s3 import parse_url
+
+            parse_url(self.artifacts_url)
         for cert, key, name in ((self.grpc_tls_cert, self.grpc_tls_key, "GRPC_TLS"),
                                 (self.tls_cert, self.tls_key, "TLS")):  # fmt: skip
             if (cert is None) != (key is None):

@@ -32,6 +32,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from quicknav_service.artifacts import ArtifactUnavailable, make_artifacts
 from quicknav_service.job_kinds import RUNNERS
 from quicknav_service.jobs.capabilities import ANNOUNCE_TTL_S, Capabilities, can_run
 from quicknav_service.jobs.models import Job, JobKind, JobStatus, StoreUnavailable
@@ -86,7 +87,8 @@ class Worker:
         self._coordinators: list[threading.Thread] = []  # sweeps this worker follows
         self._capabilities: Capabilities | None = None
         self._announced_at = 0.0
-        settings.artifacts_dir.mkdir(parents=True, exist_ok=True)
+        self.artifacts = make_artifacts(settings)  # a folder, or an object store and a scratch folder
+        self.artifacts.work_dir("_").parent.mkdir(parents=True, exist_ok=True)
 
     # ------------------------------------------------------------------ loop
     @property
@@ -254,7 +256,8 @@ class Worker:
 
     # ------------------------------------------------------------------ jobs
     def job_dir(self, job_id: str) -> Path:
-        return self.settings.artifacts_dir / job_id
+        """The local folder a job writes into (on an object store: uploaded from there)."""
+        return self.artifacts.work_dir(job_id)
 
     def stopper(self, job: Job, lost: threading.Event) -> Callable[..., str | None]:
         """Why the job should stop now (lost lease, shutdown, cancel), or None. Cheap to ask
@@ -311,13 +314,17 @@ class Worker:
             try:
                 self.job_dir(job.id).mkdir(parents=True, exist_ok=True)
                 (self.job_dir(job.id) / "error.txt").write_text(traceback.format_exc())
-            except OSError:
-                pass  # a full disk: the reason says so, the traceback is in the log
+                if not isinstance(e, ArtifactUnavailable) and not lost.is_set():
+                    self.artifacts.save(job.id)  # what the failed job made, for its owner to read
+            except (OSError, ArtifactUnavailable):
+                pass  # a full disk or a store outage: the reason says so, the traceback is in the log
             if not lost.is_set():
                 self.until_done(self.store.finish, job.id, self.id, JobStatus.failed, error=reason)
+                self.artifacts.release(job.id)
             return
         if outcome == "lost":
-            return  # someone else owns the job now
+            return  # someone else owns the job now (perhaps in this very folder)
+        self.artifacts.release(job.id)  # the store has its files (a scratch copy goes)
         if outcome == "shutdown":
             self.until_done(self.store.release, job.id, self.id)
         elif outcome == "cancelled":

@@ -52,3 +52,23 @@ def default_config() -> EnvConfig:
 @pytest.fixture(scope="session")
 def default_env(default_config):
     return default_config.build("train")
+
+
+@pytest.fixture(scope="session")
+def s3_server(tmp_path_factory):
+    """A real S3 server (SeaweedFS) on loopback ports for this test process; tests that take it
+    down (an outage) start it again before they end."""
+    from tests.s3_server import S3Server
+
+    server = S3Server(tmp_path_factory.mktemp("seaweedfs")).start()
+    yield server
+    server.stop()
+
+
+@pytest.fixture
+def s3_env(s3_server, monkeypatch):
+    """This process reaches the test S3 server through the usual AWS_* variables; returns the
+    server (``s3_server.url()`` gives a fresh prefix in its bucket)."""
+    for name, value in s3_server.env().items():
+        monkeypatch.setenv(name, value)
+    return s3_server

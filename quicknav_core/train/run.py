@@ -210,6 +210,7 @@ def train_run(
     max_chunk_s: float | None = None,
     interrupt: Callable[[], bool] | None = None,
     replay_every_s: float = 0.0,
+    on_checkpoint: Callable[[int], None] | None = None,
 ) -> dict[str, Any]:
     """Train ``config`` into ``run_dir`` (or continue it with ``resume``). Returns a summary.
 
@@ -222,6 +223,9 @@ def train_run(
     seconds have passed since it last was (0: every time, and a resumed run is exactly the
     uninterrupted one); between, checkpoints carry the last one written, so a run resumed from one
     refills from a buffer up to ``replay_every_s`` old. The last checkpoint of a run has it fresh.
+
+    ``on_checkpoint(chunk)`` is called after each checkpoint is complete on disk (the service
+    publishes it to its artifact store there); what it raises ends the run.
     """
     from quicknav_core.train.trainers import make_trainer
 
@@ -276,6 +280,8 @@ def train_run(
                 save_checkpoint(run_dir, trainer, state, chunk, with_replay=due)
                 if due:
                     replay_saved = time.monotonic()
+                if on_checkpoint is not None:
+                    on_checkpoint(chunk)
             if stop:
                 stopped = True
                 break

@@ -11,6 +11,7 @@ from fastapi.responses import JSONResponse
 from pydantic import BaseModel
 
 from quicknav_core.config.resolve import explain_unknown_fields
+from quicknav_service.artifacts import ArtifactUnavailable
 from quicknav_service.jobs.models import StoreUnavailable
 from quicknav_service.jobs.service import BadRequest, Conflict, Invalid, NotFound, ServiceError
 from quicknav_service.schemas import MIN_ID_PREFIX, HTTPError, ValidationErrorBody
@@ -27,7 +28,7 @@ _WHY = {
     415: "a POST without a JSON body (Content-Type: application/json) or the X-QuickNav-Web header",
     422: "bad fields: every one of them, each with its location and what is allowed",
     429: "too many failed authentications from this address; retry after Retry-After seconds",
-    503: "the job store cannot be reached; retry after Retry-After seconds",
+    503: "the job store or the artifact store cannot be reached; retry after Retry-After seconds",
     507: "the job store's disk is full; retry after Retry-After seconds (deleting jobs frees space)",
 }
 _RETRY_AFTER = {"Retry-After": {"description": "seconds to wait before retrying",
@@ -97,6 +98,13 @@ def install(app: FastAPI) -> None:
             return JSONResponse({"detail": detail}, status_code=422)
         status = {BadRequest: 400, NotFound: 404, Conflict: 409}[type(exc)]
         return JSONResponse({"detail": exc.detail}, status_code=status)
+
+    @app.exception_handler(ArtifactUnavailable)
+    async def artifacts_unavailable(request: Request, exc: ArtifactUnavailable) -> JSONResponse:
+        return JSONResponse(
+            {"detail": f"{exc}; retry in a few seconds"}, status_code=503,
+            headers={"Retry-After": "5"},
+        )
 
     @app.exception_handler(StoreUnavailable)
     async def store_unavailable(request: Request, exc: StoreUnavailable) -> JSONResponse:

@@ -51,7 +51,8 @@ def create_app(
     """The API; with ``start_workers`` (default: settings.embedded_worker) in-process workers run too."""
     settings = settings or get_settings()
     store = store if store is not None else make_store(settings)
-    settings.artifacts_dir.mkdir(parents=True, exist_ok=True)
+    if not settings.artifacts_url:
+        settings.artifacts_dir.mkdir(parents=True, exist_ok=True)
     run_workers = settings.embedded_worker if start_workers is None else start_workers
 
     @asynccontextmanager

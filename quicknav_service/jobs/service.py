@@ -7,7 +7,6 @@ delete with its cascade. It speaks in jobs and errors of its own (``Invalid``, `
 
 from __future__ import annotations
 
-import shutil
 from collections.abc import Iterator
 from typing import Any
 
@@ -78,8 +77,11 @@ class JobsService:
     """What the API does with jobs, over one store and this server's settings."""
 
     def __init__(self, store: JobStore, settings: Settings):
+        from quicknav_service.artifacts import make_artifacts
+
         self.store = store
         self.settings = settings
+        self.artifacts = make_artifacts(settings)
 
     # ------------------------------------------------------------------ lookup
     def get(self, job_id: str) -> Job:
@@ -148,9 +150,7 @@ class JobsService:
         if src.kind != JobKind.train:
             raise Invalid([{"loc": ["job_id"], "type": "value_error",
                             "msg": f"job {job_id} is a {src.kind.value} job; eval needs a train job"}])  # fmt: skip
-        from quicknav_core.train.run import checkpoint_dir
-
-        if checkpoint_dir(self.settings.artifacts_dir / src.id) is None:
+        if not self.artifacts.has_checkpoint(src.id):
             raise Conflict(f"train job {src.id} has no checkpoint yet (status {src.status.value})")
         config = src.config or src.request.get("config")  # jobs stored before configs were
         return TrainConfig.model_validate(config).env
@@ -196,9 +196,9 @@ class JobsService:
                 raise Conflict(f"sweep {job.id} still has running trial batches ({', '.join(busy)});"
                                " delete it once they have stopped")  # fmt: skip
             for b in mine:
-                shutil.rmtree(self.settings.artifacts_dir / b.id, ignore_errors=True)
+                self.artifacts.delete(b.id)
                 self.store.delete(b.id)
-        shutil.rmtree(self.settings.artifacts_dir / job.id, ignore_errors=True)
+        self.artifacts.delete(job.id)
         try:
             self.store.delete(job.id)
         except JobStateError as e:

@@ -37,6 +37,17 @@ def _padded(n: int) -> int:
     return max(8, 1 << (n - 1).bit_length())
 
 
+
+def run_copy(settings, job_id: str, field: str) -> Path | None:
+    """A train job's run folder from the artifact store (a local copy of an object store's);
+    UNAVAILABLE naming the store when it cannot be reached."""
+    from quicknav_service.artifacts import ArtifactUnavailable, make_artifacts
+
+    try:
+        return make_artifacts(settings).run_copy(job_id)
+    except ArtifactUnavailable as e:
+        raise Refused(grpc.StatusCode.UNAVAILABLE, f"{field}={job_id!r}: {e}") from None
+
 class LoadedPolicy:
     """One job's policy with its batcher: the jitted act and the queue of waiting requests."""
 
@@ -183,10 +194,8 @@ class PolicyServicer(pb_grpc.PolicyServiceServicer):
             manifest_json=policy.manifest_json, rows=rows, obs_dim=policy.obs_dim))
 
     def _policy(self, job_id: str) -> LoadedPolicy:
-        from quicknav_core.train.run import checkpoint_dir
-
-        run_dir = self.settings.artifacts_dir / job_id
-        if not _is_plain_id(job_id) or checkpoint_dir(run_dir) is None:
+        run_dir = run_copy(self.settings, job_id, "load.job_id") if _is_plain_id(job_id) else None
+        if run_dir is None:
             raise Refused(grpc.StatusCode.NOT_FOUND,
                           f"load.job_id={job_id!r}: no train job with a checkpoint by that id in this"
                           " service's artifacts")  # fmt: skip

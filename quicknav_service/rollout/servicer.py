@@ -265,7 +265,7 @@ class RolloutServicer(pb_grpc.RolloutServiceServicer):
         policy_run = None
         if start.HasField("policy") and start.policy.job_id:
             # a trained job's episodes: the Start's fields apply to the env it was trained in
-            policy_run = self._policy_run(start.policy.job_id)
+            policy_run = await asyncio.to_thread(self._policy_run, start.policy.job_id)
         config = parse_env_config(start, s, policy_run[1] if policy_run else None)
         if policy_run and config.obs_dim != policy_run[1].obs_dim:
             trained = policy_run[1]
@@ -488,10 +488,11 @@ class RolloutServicer(pb_grpc.RolloutServiceServicer):
     # ------------------------------------------------------------------ policy mode
     def _policy_run(self, job_id: str):
         """(run folder, the env it trained in) of a train job with a checkpoint, or NOT_FOUND."""
-        from quicknav_core.train.run import checkpoint_dir, read_config
+        from quicknav_core.train.run import read_config
+        from quicknav_service.rollout.policy import run_copy
 
-        run_dir = self.settings.artifacts_dir / job_id
-        if not _is_plain_id(job_id) or checkpoint_dir(run_dir) is None:
+        run_dir = run_copy(self.settings, job_id, "start.policy.job_id") if _is_plain_id(job_id) else None
+        if run_dir is None:
             raise Refused(
                 grpc.StatusCode.NOT_FOUND,
                 f"start.policy.job_id={job_id!r}: no train job with a checkpoint by that id in"

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
+from pathlib import PurePosixPath
 
 from fastapi import APIRouter, Depends, HTTPException
-from fastapi.responses import FileResponse
+from fastapi.responses import FileResponse, Response, StreamingResponse
 
-from quicknav_service.api.deps import JobId, JobsDep, SettingsDep, require_token
+from quicknav_service.api.deps import JobId, JobsDep, require_token
 from quicknav_service.api.errors import AUTH, STORE, responses
+from quicknav_service.artifacts import RemoteFile, bad_name
 from quicknav_service.schemas import ArtifactPublic, ArtifactsPublic, JobMetricsPublic
 
 router = APIRouter(prefix="/jobs", tags=["artifacts"], dependencies=[Depends(require_token)],
@@ -27,47 +28,35 @@ DOWNLOAD_DOC = {
 
 
 @router.get("/{job_id}/metrics", response_model=JobMetricsPublic)
-def job_metrics(job_id: JobId, jobs: JobsDep, settings: SettingsDep) -> JobMetricsPublic:
-    """One row per training chunk (the job's metrics.jsonl)."""
+def job_metrics(job_id: JobId, jobs: JobsDep) -> JobMetricsPublic:
+    """One row per training chunk (the job's metrics.jsonl; on an object store, as of its last
+    published checkpoint)."""
     job = jobs.get(job_id)
-    path = settings.artifacts_dir / job.id / "metrics.jsonl"
-    rows = (
-        [json.loads(x) for x in path.read_text().splitlines() if x.strip()] if path.exists() else []
-    )
+    data = jobs.artifacts.read_bytes(job.id, "metrics.jsonl") or b""
+    rows = [json.loads(x) for x in data.decode().splitlines() if x.strip()]
     return JobMetricsPublic(job_id=job.id, metrics=rows)
 
 
-def _artifact_files(root: Path) -> list[ArtifactPublic]:
-    if not root.exists():
-        return []
-    out = []
-    for p in sorted(root.rglob("*")):
-        partial = p.name.endswith(".tmp") or any(
-            part in ("checkpoint.new", "checkpoint.old") for part in p.relative_to(root).parts
-        )  # a checkpoint being written or swapped
-        if p.is_file() and not partial:
-            out.append(ArtifactPublic(name=p.relative_to(root).as_posix(), bytes=p.stat().st_size))
-    return out
-
-
 @router.get("/{job_id}/artifacts", response_model=ArtifactsPublic)
-def list_artifacts(job_id: JobId, jobs: JobsDep, settings: SettingsDep) -> ArtifactsPublic:
+def list_artifacts(job_id: JobId, jobs: JobsDep) -> ArtifactsPublic:
     """The job's files with their sizes."""
     job = jobs.get(job_id)
-    return ArtifactsPublic(job_id=job.id, artifacts=_artifact_files(settings.artifacts_dir / job.id))
+    return ArtifactsPublic(job_id=job.id, artifacts=[
+        ArtifactPublic(name=a.name, bytes=a.bytes) for a in jobs.artifacts.list(job.id)])  # fmt: skip
 
 
 @router.get("/{job_id}/artifacts/{name:path}", response_class=FileResponse,
             responses={200: DOWNLOAD_DOC, **responses(400)})  # fmt: skip
-def get_artifact(job_id: JobId, name: str, jobs: JobsDep, settings: SettingsDep) -> FileResponse:
-    """One file of the job (names never leave the job's folder)."""
-    if "\x00" in name:
-        raise HTTPException(400, "artifact name holds a NUL byte; names are file paths inside the job's folder")
+def get_artifact(job_id: JobId, name: str, jobs: JobsDep) -> Response:
+    """One file of the job (names never leave the job's folder); streamed from an object store."""
+    if why := bad_name(name):
+        raise HTTPException(400, why)
     job = jobs.get(job_id)
-    root = (settings.artifacts_dir / job.id).resolve()
-    target = (root / name).resolve()
-    if not target.is_relative_to(root):
-        raise HTTPException(400, f"artifact name {name!r} leaves the job's folder")
-    if not target.is_file():
+    found = jobs.artifacts.download(job.id, name)
+    if found is None:
         raise HTTPException(404, f"job {job_id} has no artifact {name!r}")
-    return FileResponse(target, media_type=MEDIA_TYPES.get(target.suffix.lower(), BINARY))
+    media_type = MEDIA_TYPES.get(PurePosixPath(name).suffix.lower(), BINARY)
+    if isinstance(found, RemoteFile):
+        return StreamingResponse(found.chunks, media_type=media_type,
+                                 headers={"Content-Length": str(found.size)})  # fmt: skip
+    return FileResponse(found, media_type=media_type)

@@ -82,6 +82,18 @@ def _probe_disk(data_dir: Path) -> str:
         probe.unlink(missing_ok=True)
 
 
+def artifacts_check(settings) -> str:
+    """``ok``, or what failed (the kind of error, not where the store lives or its answer)."""
+    from quicknav_service.artifacts import ArtifactUnavailable, make_artifacts
+
+    try:
+        make_artifacts(settings).check()
+    except ArtifactUnavailable as e:
+        cause = e.__cause__
+        return f"unreachable ({type(cause).__name__ if cause else 'error'})"
+    return "ok"
+
+
 @router.get("/readyz", response_model=Readiness,
             responses={503: {"model": Readiness, "description": "not ready: the failing checks"}})  # fmt: skip
 def readyz(store: StoreDep, settings: SettingsDep) -> Response:
@@ -94,6 +106,8 @@ def readyz(store: StoreDep, settings: SettingsDep) -> Response:
         checks["store"] = e.reason
     except Exception as e:  # a bug: still say "not ready", with the kind of error only
         checks["store"] = f"error ({type(e).__name__})"
+    if settings.artifacts_url:
+        checks["artifacts"] = artifacts_check(settings)
     ready = all(v == "ok" for v in checks.values())
     body = {"status": "ready" if ready else "unavailable", "checks": checks}
     return JSONResponse(body, status_code=200 if ready else 503)

@@ -1,0 +1,106 @@
+"""The artifact store's interface, its error, and the rules for artifact names."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path, PurePosixPath
+
+# files a run folder holds while a chunk is written or a checkpoint swapped: never listed
+PARTIAL_DIRS = ("checkpoint.new", "checkpoint.old")
+
+
+class ArtifactUnavailable(Exception):
+    """The artifact store could not be reached (or refused the credentials): names the store and
+    what was being done, never the credentials."""
+
+    def __init__(self, store: str, doing: str, error: object):
+        self.store = store
+        self.doing = doing
+        self.error = str(error).splitlines()[0][:300] if str(error) else type(error).__name__
+        super().__init__(f"artifact store {store} unavailable while {doing}: {self.error}")
+
+
+@dataclass(frozen=True)
+class ArtifactInfo:
+    name: str  # a path inside the job's folder, e.g. checkpoint/state.msgpack
+    bytes: int
+
+
+@dataclass
+class RemoteFile:
+    """A download from an object store: its size, and its bytes as a stream of chunks."""
+
+    size: int
+    chunks: Iterator[bytes]
+
+
+def bad_name(name: str) -> str | None:
+    """Why ``name`` is not a file path inside a job's folder (None when it is one)."""
+    if "\x00" in name:
+        return "artifact name holds a NUL byte; names are file paths inside the job's folder"
+    parts = PurePosixPath(name).parts
+    if not parts or name.startswith("/") or ".." in parts or "\\" in name:
+        return f"artifact name {name!r} leaves the job's folder"
+    return None
+
+
+class ArtifactStore(ABC):
+    """Where jobs' files live. ``url`` names it in messages (no credentials)."""
+
+    url: str
+    remote: bool  # files are uploaded from a local scratch folder (an object store)
+
+    # ---------------------------------------------------------------- a running job's folder
+    @abstractmethod
+    def work_dir(self, job_id: str) -> Path:
+        """The local folder a running job writes into (the local store: the artifact folder)."""
+
+    @abstractmethod
+    def restore(self, job_id: str) -> Path:
+        """The job's folder with its last published checkpoint, config and metrics in it (for a
+        resumed job; on an object store they are downloaded, from whichever worker wrote them)."""
+
+    @abstractmethod
+    def save(self, job_id: str, checkpoint_only: bool = False) -> None:
+        """Publish the job's folder: its checkpoint, config and metrics (``checkpoint_only``), or
+        every file. Retried through an outage for up to the store's retry time, then
+        ArtifactUnavailable."""
+
+    @abstractmethod
+    def save_file(self, job_id: str, path: Path, name: str) -> None:
+        """Publish one file as the job's ``name`` (a run copy's edited policy manifest)."""
+
+    @abstractmethod
+    def release(self, job_id: str) -> None:
+        """The job no longer runs here: drop a scratch copy (the store keeps the files)."""
+
+    @abstractmethod
+    def run_copy(self, job_id: str) -> Path | None:
+        """A local folder holding a train job's config, last checkpoint and exported policy
+        manifest, to evaluate or serve it; None if the job has no checkpoint."""
+
+    # ---------------------------------------------------------------- reading, for the API
+    @abstractmethod
+    def has_checkpoint(self, job_id: str) -> bool: ...
+
+    @abstractmethod
+    def list(self, job_id: str) -> list[ArtifactInfo]:
+        """The job's files (complete ones only), sorted by name."""
+
+    @abstractmethod
+    def read_bytes(self, job_id: str, name: str) -> bytes | None:
+        """One small file's bytes (metrics.jsonl), None if the job has no such file."""
+
+    @abstractmethod
+    def download(self, job_id: str, name: str) -> Path | RemoteFile | None:
+        """One file to send: a local path, or a stream from the object store; None if absent."""
+
+    @abstractmethod
+    def delete(self, job_id: str) -> None:
+        """Every file of the job."""
+
+    @abstractmethod
+    def check(self) -> None:
+        """Raise ArtifactUnavailable when the store cannot be reached."""
