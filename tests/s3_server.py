@@ -26,7 +26,10 @@ PLAIN = ("s3.port.iceberg", "s3.port.lance")
 
 
 def _free(port: int) -> bool:
+    """Nothing listens on ``port`` (connections closing in TIME_WAIT do not count: a server
+    binds with SO_REUSEADDR, as SeaweedFS does)."""
     with socket.socket() as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             s.bind(("127.0.0.1", port))
         except OSError:
@@ -90,7 +93,9 @@ class S3Server:
         if self.proc is not None and self.proc.poll() is None:
             os.killpg(self.proc.pid, signal.SIGTERM)
             try:
-                self.proc.wait(20)
+                # it exits in ~2 s, or waits on clients' idle connections: then it is killed
+                # (what it wrote is in the files already; an outage may as well be a crash)
+                self.proc.wait(4)
             except subprocess.TimeoutExpired:
                 os.killpg(self.proc.pid, signal.SIGKILL)
                 self.proc.wait(10)

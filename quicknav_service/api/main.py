@@ -51,8 +51,9 @@ def create_app(
     """The API; with ``start_workers`` (default: settings.embedded_worker) in-process workers run too."""
     settings = settings or get_settings()
     store = store if store is not None else make_store(settings)
-    if not settings.artifacts_url:
-        settings.artifacts_dir.mkdir(parents=True, exist_ok=True)
+    # the data folder (its disk is a readiness check) and, without an object store, the artifacts
+    (settings.data_dir if settings.artifacts_url else settings.artifacts_dir).mkdir(parents=True,
+                                                                                   exist_ok=True)
     run_workers = settings.embedded_worker if start_workers is None else start_workers
 
     @asynccontextmanager
