@@ -68,6 +68,7 @@ def serve(
         else f"sqlite {settings.data_dir / 'jobs.db'}"
     )
     console.print(f"QuickNav API on http{'s' if settings.tls_cert else ''}://{settings.host}:{settings.port} (docs at /docs), store: {store},"
+                  f" artifacts: {settings.artifacts_url or settings.artifacts_dir},"
                   f" in-process workers: {settings.max_concurrent_jobs if settings.embedded_worker else 0}",
                   soft_wrap=True)  # fmt: skip
     rollout = announcer = None
@@ -176,7 +177,8 @@ def worker(
 
     signal.signal(signal.SIGTERM, on_term)
     signal.signal(signal.SIGINT, on_term)
-    console.print(f"worker {w.id} on {'redis' if settings.redis_url else settings.data_dir / 'jobs.db'}",
+    console.print(f"worker {w.id} on {'redis' if settings.redis_url else settings.data_dir / 'jobs.db'},"
+                  f" artifacts: {w.artifacts.url}",
                   soft_wrap=True)  # fmt: skip
     try:
         if burst:

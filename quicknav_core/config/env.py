@@ -167,6 +167,52 @@ class RandomizeConfig(StrictModel):
         return max(self.wheel_scale_left[1], self.wheel_scale_right[1])
 
 
+class FloorplanConfig(StrictModel):
+    """Generated floor plans (``env.rooms='floorplan'``, ``quicknav_core.env.floorplan``): rooms cut
+    by one-cell walls, joined by doors, off a corridor. Sizes in cells."""
+
+    min_room: int = Field(4, ge=1, le=64, description="smallest room side, cells")
+    max_room: int = Field(
+        12, ge=1, le=128,
+        description="rooms up to this side may stay uncut (the chance grows as they shrink), cells",
+    )  # fmt: skip
+    door_width: int = Field(1, ge=1, le=16, description="door width, cells")
+    corridor_width: int = Field(
+        1, ge=0, le=16, description="width of the corridor made by the first cut, cells (0: a wall)"
+    )
+    loop_prob: float = Field(
+        0.1, ge=0.0, le=1.0,
+        description="chance of a second door between two rooms already joined (a way round)",
+    )  # fmt: skip
+
+    @model_validator(mode="after")
+    def _sizes(self) -> FloorplanConfig:
+        if self.max_room < self.min_room:
+            raise ValueError(f"max_room={self.max_room} < min_room={self.min_room}; allowed range"
+                             f" max_room >= min_room")  # fmt: skip
+        return self
+
+
+class MapsConfig(StrictModel):
+    """Maps of buildings as rooms (``env.rooms='maps'``, ``quicknav_core.env.maps``)."""
+
+    train: list[str] = Field(
+        min_length=1, max_length=256,
+        description="map files: ROS map_server .yaml (with its .pgm) or .png/.pgm images",
+    )  # fmt: skip
+    test: list[str] | None = Field(
+        None, min_length=1, max_length=256,
+        description="held-out map files (None: the train maps, evaluated on held-out episodes)",
+    )  # fmt: skip
+    resolution: float | None = Field(
+        None, gt=0.0, le=100.0, description="metres per pixel of plain images (a .yaml names its own)"
+    )
+    unknown: Literal["wall", "free"] = Field("wall", description="how unknown pixels count")
+    occupied_thresh: float = Field(0.65, gt=0.0, le=1.0, description="plain images: occupied above")
+    free_thresh: float = Field(0.196, ge=0.0, lt=1.0, description="plain images: free below")
+    negate: bool = Field(False, description="plain images: white is occupied")
+
+
 def max_grid_for(room_size: float, robot_radius: float) -> int:
     """The largest grid whose cells are wider than the robot."""
     g = int(room_size / (2 * robot_radius))
@@ -177,6 +223,15 @@ class EnvConfig(StrictModel):
     """Everything that defines a QuickNav environment. ``build(split)`` returns ``(env, params)``."""
 
     # Room and procedural generation
+    rooms: Literal["carved", "floorplan", "maps"] = Field(
+        "carved",
+        description="where rooms come from: 'carved' (random-walk caves, the paper's), 'floorplan'"
+        " (generated rooms, doors and a corridor: env.floorplan) or 'maps' (building maps: env.maps)",
+    )
+    floorplan: FloorplanConfig = Field(
+        default_factory=FloorplanConfig, description="the floor-plan generator (rooms='floorplan')"
+    )
+    maps: MapsConfig | None = Field(None, description="the map files (rooms='maps')")
     room_size: float = Field(8.0, gt=0.0, le=1000.0, description="side of the square room, metres")
     grid_size: int = Field(16, ge=4, le=128, description="cells per side (outer ring is wall)")
     carve_fraction: float = Field(
@@ -292,6 +347,9 @@ class EnvConfig(StrictModel):
                 " robot could pass through walls; allowed range max_wheel_speed*dt <= room_size/grid_size"
             )
         self._check_randomize()
+        self._check_source()
+        if self.rooms != "carved":
+            return self
         if self.carve_target > self.inner_cells:
             raise ValueError(
                 f"carve_fraction={self.carve_fraction}: grid_size={self.grid_size} has only"
@@ -304,6 +362,21 @@ class EnvConfig(StrictModel):
             )
         self._check_carving()
         return self
+
+    def _check_source(self) -> None:
+        """Fields of one room source are refused under another (they would be ignored)."""
+        if self.rooms == "maps" and self.maps is None:
+            raise ValueError("rooms='maps' needs env.maps.train: the map files to train on")
+        if self.rooms != "maps" and self.maps is not None:
+            raise ValueError(f"env.maps applies only with rooms='maps' (rooms={self.rooms!r})")
+        if self.rooms != "floorplan" and self.floorplan != FloorplanConfig():
+            raise ValueError(f"env.floorplan applies only with rooms='floorplan' (rooms={self.rooms!r})")
+        if self.rooms != "carved":
+            carving = {"carve_fraction": 0.8, "return_prob": 0.05, "carve_max_steps": None, "carver": "auto"}
+            changed = [k for k, v in carving.items() if getattr(self, k) != v]
+            if changed:
+                raise ValueError(f"{', '.join(changed)} shape carved rooms only; with rooms="
+                                 f"{self.rooms!r} leave {'it' if len(changed) == 1 else 'them'} unset")  # fmt: skip
 
     def _check_randomize(self) -> None:
         """The randomised robot keeps the geometry rules of the plain one at its extremes."""

@@ -207,6 +207,12 @@ class QuickNavNumpyEnv(gym.Env):
     # ---------------------------------------------------------------- rooms
     def room(self, index: int) -> np.ndarray:
         """Room ``index`` of the bank: a given one, or carved on first use (NumPy RNG streams)."""
+        if index not in self._rooms and self.config.rooms != "carved":
+            from quicknav_core.env.room_sources import source_bank
+
+            c = self.config
+            train = source_bank(c, "train") if self.split == "test" and c.rooms == "floorplan" else None
+            self._rooms.update(enumerate(source_bank(c, self.split, train=train)))
         if index not in self._rooms:
             c = self.config
             rng = np.random.default_rng([c.room_seed, SPLIT_STREAM[self.split], index])

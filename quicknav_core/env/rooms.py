@@ -279,6 +279,13 @@ def make_room_bank(config: EnvConfig, split: Split) -> np.ndarray:
     cached = _cache_read(config, split)
     if cached is not None:
         return cached
+    if config.rooms != "carved":  # generated floor plans or maps (NumPy, shared with the twin)
+        from quicknav_core.env.room_sources import source_bank
+
+        train = make_room_bank(config, "train") if split == "test" else None
+        bank = source_bank(config, split, train=train)
+        _cache_write(config, split, bank)
+        return bank
     if split == "train":
         key, last = bank_key(config, "train"), _last_train
         if last is not None and last[0] == key:
@@ -319,7 +326,12 @@ def bank_key(config: EnvConfig, split: Split) -> str:
     """What a bank depends on, as a file-name-safe digest."""
     fields = ("grid_size", "carve_fraction", "return_prob", "carve_step_cap", "room_seed",
               "train_rooms", "test_rooms", "resolved_carver")  # fmt: skip
-    text = json.dumps([GENERATOR_VERSION, split, *(getattr(config, f) for f in fields)])
+    parts = [GENERATOR_VERSION, split, *(getattr(config, f) for f in fields)]
+    if config.rooms != "carved":
+        from quicknav_core.env.room_sources import source_key
+
+        parts += source_key(config, split)
+    text = json.dumps(parts)
     return hashlib.sha256(text.encode()).hexdigest()[:32]
 
 

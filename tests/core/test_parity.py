@@ -45,8 +45,13 @@ def _rollout_jax(env, params, n_envs, n_steps, actions, seed):
     ids=["default", "grid8-fov180-linear-cycles", "grid8-potential"],
 )  # fmt: skip
 def test_parity__jax_env_matches_numpy_twin(config):
+    assert_parity_on(config)
+
+
+def assert_parity_on(config: EnvConfig, n_envs: int = 12, n_steps: int = 400) -> None:
+    """Roll the JAX env (vmapped, auto-reset) and replay every env's episodes in the twin, loaded
+    with the JAX env's rooms and spawns: positions, scans, rewards and ends agree."""
     env, params = config.build("train")
-    n_envs, n_steps = 12, 400
     rng = np.random.default_rng(7)
     actions = rng.uniform(-1.0, 1.0, (n_steps, n_envs, 2)).astype(np.float32)
     actions[..., :] = 0.6 * actions + np.array([0.45, 0.45], np.float32)  # mostly forward

@@ -1,0 +1,210 @@
+"""Maps of real buildings as rooms: ROS map_server occupancy grids (YAML + PGM) and plain images.
+
+A map is read into an occupancy picture (True = the robot may not be there: occupied, and unknown
+unless told otherwise), then laid on the env's cell grid conservatively: a cell is wall if any
+such pixel overlaps it, so every free cell of the grid is free space in the map, and a passage the
+grid opens is one the disc can drive (the robot is narrower than a cell). The map's lower-left
+corner sits at the corner of cell (1, 1), inside the outer ring of wall; cells the map does not
+reach are wall. Free cells that the robot cannot reach from the largest free region (islands
+behind unknown space, closed rooms) become wall, so starts and goals are only drawn where the robot
+can drive between them.
+
+ROS map_server's YAML (as gmapping, cartographer and slam_toolbox save it): ``image`` (relative
+to the YAML), ``resolution`` (m/pixel), ``origin`` ([x, y, yaw] of the lower-left pixel: yaw must
+be 0), ``occupied_thresh``, ``free_thresh``, ``negate`` and ``mode`` (``trinary``, the default, or
+``scale``; both read occupancy the same way here). A pixel's occupancy is ``(255 - v) / 255``
+(``negate: 1``: ``v / 255``): above ``occupied_thresh`` it is occupied, below ``free_thresh`` free,
+between the two unknown. A plain PNG/PGM is read the same way with the thresholds and the
+resolution given in the config (dark = occupied).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+YAML_SUFFIXES = (".yaml", ".yml")
+IMAGE_SUFFIXES = (".pgm", ".png")
+MAX_MAP_PIXELS = 64_000_000  # 8000 x 8000: far above what an env grid can use
+
+
+class MapError(ValueError):
+    """A map that cannot be used: names the file, the field and the fix."""
+
+
+@dataclass
+class OccupancyMap:
+    """A map as read: ``blocked[y, x]`` with y up (row 0 = the bottom row of the picture)."""
+
+    path: str
+    blocked: np.ndarray  # (H, W) bool: occupied, or unknown (as wall)
+    resolution: float  # metres per pixel
+    origin: tuple[float, float] = (0.0, 0.0)  # world (x, y) of the lower-left pixel's corner
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def size_m(self) -> tuple[float, float]:
+        h, w = self.blocked.shape
+        return w * self.resolution, h * self.resolution
+
+
+def _read_image(path: Path) -> np.ndarray:
+    """Grey levels 0..255 as (H, W) uint8, top row first (as the picture is drawn)."""
+    from PIL import Image, UnidentifiedImageError
+
+    if not path.is_file():
+        raise MapError(f"{path}: no such file")
+    try:
+        with Image.open(path) as im:
+            if im.width * im.height > MAX_MAP_PIXELS:
+                raise MapError(f"{path}: {im.width} x {im.height} pixels is more than the"
+                               f" {MAX_MAP_PIXELS:,} a map may have; save it at a coarser resolution")  # fmt: skip
+            if im.mode in ("I", "I;16", "I;16B", "F"):  # 16-bit PGM: scale to 8 bits
+                arr = np.asarray(im, dtype=np.float64)
+                top = max(float(arr.max()), 1.0)
+                return np.clip(np.round(arr / (65535.0 if top > 255 else 255.0) * 255), 0, 255).astype(np.uint8)
+            return np.asarray(im.convert("L"), dtype=np.uint8)
+    except UnidentifiedImageError:
+        raise MapError(f"{path}: not a PGM or PNG image Pillow can read (a map_server map is a"
+                       " binary P5 or text P2 PGM)") from None  # fmt: skip
+    except OSError as e:
+        raise MapError(f"{path}: the image cannot be read ({e}); it may be truncated") from None
+
+
+def occupancy(grey: np.ndarray, occupied_thresh: float, free_thresh: float, negate: bool,
+              unknown_free: bool) -> np.ndarray:  # fmt: skip
+    """Blocked pixels of a grey picture by map_server's rule."""
+    v = grey.astype(np.float64) / 255.0
+    p = v if negate else 1.0 - v
+    occupied = p > occupied_thresh
+    free = p < free_thresh
+    return occupied | (~free & ~unknown_free)
+
+
+def load_map(path: str | Path, resolution: float | None = None, occupied_thresh: float = 0.65,
+             free_thresh: float = 0.196, negate: bool = False,
+             unknown_free: bool = False) -> OccupancyMap:  # fmt: skip
+    """A map_server YAML (its own fields win) or a PNG/PGM with ``resolution`` m/pixel."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix in YAML_SUFFIXES:
+        return _load_yaml(path, unknown_free)
+    if suffix not in IMAGE_SUFFIXES:
+        raise MapError(f"{path}: a map is a map_server .yaml (with its .pgm) or a .png/.pgm image;"
+                       f" {suffix or 'no suffix'} is neither")  # fmt: skip
+    if resolution is None:
+        raise MapError(f"{path}: a plain image needs its scale: set maps.resolution (metres per"
+                       " pixel), or give the map_server .yaml that names it")  # fmt: skip
+    grey = _read_image(path)
+    blocked = occupancy(grey, occupied_thresh, free_thresh, negate, unknown_free)[::-1]
+    return OccupancyMap(str(path), np.ascontiguousarray(blocked), float(resolution))
+
+
+def _load_yaml(path: Path, unknown_free: bool) -> OccupancyMap:
+    import yaml
+
+    if not path.is_file():
+        raise MapError(f"{path}: no such file")
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except (yaml.YAMLError, UnicodeDecodeError) as e:
+        raise MapError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
+    if not isinstance(doc, dict):
+        raise MapError(f"{path}: a map_server YAML is a mapping with image, resolution and origin")
+
+    def need(key: str):
+        if key not in doc:
+            raise MapError(f"{path}: field {key!r} is missing (map_server needs image, resolution"
+                           " and origin)")  # fmt: skip
+        return doc[key]
+
+    image = path.parent / str(need("image"))
+    raw_resolution, raw_origin = need("resolution"), need("origin")
+    try:
+        resolution = float(raw_resolution)
+        origin = [float(v) for v in raw_origin]
+        occ = float(doc.get("occupied_thresh", 0.65))
+        free = float(doc.get("free_thresh", 0.196))
+        negate = bool(int(doc.get("negate", 0)))
+    except (TypeError, ValueError):
+        raise MapError(f"{path}: resolution, origin, occupied_thresh, free_thresh and negate must"
+                       " be numbers (origin: [x, y, yaw])") from None  # fmt: skip
+    if not (resolution > 0 and math.isfinite(resolution)):
+        raise MapError(f"{path}: field 'resolution' is {resolution}; it must be > 0 (metres per pixel)")
+    if len(origin) != 3:
+        raise MapError(f"{path}: field 'origin' must be [x, y, yaw]; got {origin}")
+    if abs(origin[2]) > 1e-9:
+        raise MapError(f"{path}: field 'origin' has yaw {origin[2]}; only maps with yaw 0 can be"
+                       " laid on the grid (rotate the image and set yaw to 0)")  # fmt: skip
+    if not 0.0 <= free < occ <= 1.0:
+        raise MapError(f"{path}: free_thresh={free} and occupied_thresh={occ} must satisfy 0 <="
+                       " free_thresh < occupied_thresh <= 1")  # fmt: skip
+    mode = str(doc.get("mode", "trinary"))
+    if mode not in ("trinary", "scale"):
+        raise MapError(f"{path}: field 'mode' is {mode!r}; QuickNav reads 'trinary' and 'scale' maps")
+    grey = _read_image(image)
+    blocked = occupancy(grey, occ, free, negate, unknown_free)[::-1]
+    return OccupancyMap(str(path), np.ascontiguousarray(blocked), resolution, (origin[0], origin[1]),
+                        meta={"image": str(image), "negate": negate, "mode": mode})  # fmt: skip
+
+
+def to_cells(m: OccupancyMap, cell: float, grid: int) -> np.ndarray:
+    """The map on a (grid, grid) wall grid with cells of ``cell`` metres (see the module doc)."""
+    width_m, height_m = m.size_m
+    inner = grid - 2
+    need_x, need_y = math.ceil(width_m / cell - 1e-9), math.ceil(height_m / cell - 1e-9)
+    if need_x > inner or need_y > inner:
+        side = max(need_x, need_y) + 2
+        raise MapError(
+            f"{m.path}: the map is {width_m:g} m x {height_m:g} m, {need_x} x {need_y} cells of"
+            f" {cell:g} m (room_size / grid_size) plus the outer wall; grid_size={grid} holds"
+            f" {inner} x {inner}. Set grid_size >= {side} with room_size = grid_size x {cell:g} m"
+            f" (= {side * cell:g} m), or a larger cell size (room_size / grid_size)"
+        )
+    walls = np.ones((grid, grid), dtype=bool)
+    walls[1:1 + need_y, 1:1 + need_x] = False
+    h, w = m.blocked.shape
+    ys, xs = np.nonzero(m.blocked)
+    if ys.size:
+        # the cells a pixel overlaps: from its lower-left to its upper-right corner (exclusive)
+        eps = 1e-9 * cell
+        x0 = np.floor(xs * m.resolution / cell).astype(np.int64)
+        x1 = np.floor(((xs + 1) * m.resolution - eps) / cell).astype(np.int64)
+        y0 = np.floor(ys * m.resolution / cell).astype(np.int64)
+        y1 = np.floor(((ys + 1) * m.resolution - eps) / cell).astype(np.int64)
+        span = int(max((x1 - x0).max(), (y1 - y0).max())) + 1
+        for dy in range(span):
+            for dx in range(span):
+                ok = (y0 + dy <= y1) & (x0 + dx <= x1)
+                walls[1 + y0[ok] + dy, 1 + x0[ok] + dx] = True
+    return walls
+
+
+def reachable_only(walls: np.ndarray, path: str) -> tuple[np.ndarray, float]:
+    """Walls with every free cell outside the largest free region made wall; and the share of
+    free cells dropped. MapError when no region of two cells is left."""
+    from scipy import ndimage
+
+    labels, n = ndimage.label(~walls)
+    if n == 0:
+        raise MapError(f"{path}: no free cell is left on the grid (every cell overlaps an occupied"
+                       " or unknown pixel); use smaller cells (room_size / grid_size), or"
+                       " maps.unknown='free' if the free space is marked unknown")  # fmt: skip
+    sizes = np.bincount(labels.ravel())[1:]
+    keep = int(np.argmax(sizes)) + 1
+    if sizes[keep - 1] < 2:
+        raise MapError(f"{path}: no free space the robot fits in: the largest free region is one"
+                       " cell; use smaller cells (room_size / grid_size)")  # fmt: skip
+    out = walls | (labels != keep)
+    return out, 1.0 - sizes[keep - 1] / sizes.sum()
+
+
+def map_room(path: str | Path, cell: float, grid: int, **read: Any) -> np.ndarray:
+    """A map file as one room of the bank: (grid, grid) bool, True = wall."""
+    m = load_map(path, **read)
+    walls, _ = reachable_only(to_cells(m, cell, grid), m.path)
+    return walls
