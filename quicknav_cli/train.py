@@ -104,9 +104,11 @@ def train(
     if print_only:
         print_config(cfg)
         return
+    from quicknav_core.env.room_sources import check_rooms
     from quicknav_core.train.trainers import local_devices
 
     try:
+        check_rooms(cfg.env)  # a map that cannot be used is refused before anything compiles
         devices = local_devices(cfg.devices)
     except ValueError as e:
         fail(str(e))

@@ -78,3 +78,11 @@ def source_bank(config: EnvConfig, split: Split, train: np.ndarray | None = None
         return floorplan_bank(config, split, count, skip=skip)
     rooms = map_rooms(config, split)
     return np.stack([rooms[i % len(rooms)] for i in range(count)])
+
+
+def check_rooms(config: EnvConfig) -> None:
+    """Read every map a config names and lay it on the grid, so a map that cannot be used is
+    refused (MapError, naming the file and the fix) before anything compiles or trains."""
+    if config.rooms == "maps":
+        for split in ("train", "test"):
+            map_rooms(config, split)

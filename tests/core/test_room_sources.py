@@ -228,3 +228,18 @@ def test_map__numpy_twin_matches_the_jax_env(tmp_path):
     path = write_map(tmp_path, drawn, 0.5)
     assert_parity_on(EnvConfig(rooms="maps", maps={"train": [str(path)]}, grid_size=16,
                                room_size=8.0, train_rooms=4, test_rooms=2))  # fmt: skip
+
+
+def test_map__the_shipped_office_map_loads_and_the_oracle_drives_it():
+    from quicknav_core.config import EvalConfig
+    from quicknav_core.env.room_sources import check_rooms
+    from quicknav_core.eval.evaluate import run_eval
+
+    office = str(Path(__file__).resolve().parents[2] / "examples" / "maps" / "office.yaml")
+    env = EnvConfig(rooms="maps", maps={"train": [office]}, grid_size=48, room_size=24.0,
+                    max_steps=600, train_rooms=4, test_rooms=4)  # fmt: skip
+    check_rooms(env)
+    with pytest.raises(MapError, match="Set grid_size >= 45"):
+        check_rooms(env.model_copy(update={"grid_size": 16, "room_size": 8.0}))
+    result, _ = run_eval(EvalConfig(policy="oracle", env=env, episodes=48, split="test", seed=5))
+    assert result["metrics"]["success_rate"] >= 0.98, result["metrics"]

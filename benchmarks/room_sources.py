@@ -1,0 +1,89 @@
+"""Env steps/s by room source, same run: carved 16x16 (the paper's), generated floor plans at 16, 64
+and 128 cells, and the shipped office map (map_server YAML + PGM) at 48 cells.
+
+    uv run python -m benchmarks.room_sources [--batch 1024] [--out benchmarks/results/room_sources.json]
+
+Every row: the same robot (radius 0.15 m), 16 lidar beams, random actions, the whole observation
+consumed, ``batch`` envs vmapped inside one jitted lax.scan (the method of `quicknav bench`); cells
+of 0.5 m (room side = grid x 0.5 m), so larger grids are larger buildings. The bank's build time
+and the compile time are printed beside the rate.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def configs():
+    from quicknav_core.config import EnvConfig
+
+    common = {"lidar_beams": 16, "final_obs": False, "train_rooms": 64, "test_rooms": 8}
+    office = str(ROOT / "examples" / "maps" / "office.yaml")
+    return [
+        ("carved 16", EnvConfig(grid_size=16, room_size=8.0, **common)),
+        ("floorplan 16", EnvConfig(rooms="floorplan", grid_size=16, room_size=8.0, **common)),
+        ("floorplan 64", EnvConfig(rooms="floorplan", grid_size=64, room_size=32.0, **common)),
+        ("floorplan 128", EnvConfig(rooms="floorplan", grid_size=128, room_size=64.0, **common)),
+        ("map office 48", EnvConfig(rooms="maps", maps={"train": [office]}, grid_size=48,
+                                    room_size=24.0, **common)),  # fmt: skip
+    ]
+
+
+def measure(config, batch: int, steps: int, repeats: int) -> dict:
+    import jax
+
+    from quicknav_core.bench.env import make_scan_rollout
+
+    t0 = time.perf_counter()
+    env, params = config.build("train")
+    bank_s = time.perf_counter() - t0
+    length = max(steps // batch, 8)
+    key = jax.random.PRNGKey(0)
+    _, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key, batch), params)
+    rollout = make_scan_rollout(env, params, batch, length, False)
+    t0 = time.perf_counter()
+    compiled = jax.jit(rollout, donate_argnums=(1,)).lower(key, state).compile()
+    compile_s = time.perf_counter() - t0
+    carry = [key, state]
+    times = []
+    for _ in range(repeats + 1):  # the first call warms up
+        t0 = time.perf_counter()
+        carry[0], carry[1], total = compiled(carry[0], carry[1])
+        total.block_until_ready()
+        times.append(time.perf_counter() - t0)
+    best = sorted(times[1:])[len(times[1:]) // 2]
+    return {"steps_per_s": round(length * batch / best), "bank_build_s": round(bank_s, 2),
+            "compile_s": round(compile_s, 1), "batch": batch, "steps_timed": length * batch}  # fmt: skip
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--batch", type=int, default=1024)
+    ap.add_argument("--steps", type=int, default=400_000)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args()
+    import jax
+
+    rows = []
+    print(f"{'rooms':<16} {'steps/s':>12} {'bank s':>8} {'compile s':>10}")
+    for name, cfg in configs():
+        r = {"rooms": name, "grid": cfg.grid_size, **measure(cfg, args.batch, args.steps, args.repeats)}
+        rows.append(r)
+        print(f"{name:<16} {r['steps_per_s']:>12,} {r['bank_build_s']:>8} {r['compile_s']:>10}", flush=True)
+    doc = {"machine": f"{platform.processor() or platform.machine()}, {jax.device_count()} "
+                      f"{jax.default_backend()} device(s), jax {jax.__version__}",
+           "batch": args.batch, "rows": rows}  # fmt: skip
+    if args.out:
+        args.out.write_text(json.dumps(doc, indent=2) + "\n")
+        print("wrote", args.out)
+
+
+if __name__ == "__main__":
+    main()
