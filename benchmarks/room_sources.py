@@ -41,8 +41,8 @@ def configs():
         ("floorplan 16", EnvConfig(rooms="floorplan", grid_size=16, room_size=8.0, **common)),
         ("floorplan 64", EnvConfig(rooms="floorplan", grid_size=64, room_size=32.0, **common)),
         ("floorplan 128", EnvConfig(rooms="floorplan", grid_size=128, room_size=64.0, **common)),
-        ("map office 48", EnvConfig(rooms="maps", maps={"train": [office]}, grid_size=48,
-                                    room_size=24.0, **common)),  # fmt: skip
+        ("map office 48",
+         EnvConfig(rooms="maps", maps={"train": [office]}, grid_size=48, room_size=24.0, **common)),
     ]
 
 

@@ -34,7 +34,8 @@ from quicknav_core.config.sweep import METRICS, ParamSpec, SweepConfig
 from quicknav_core.train.batched import shape_signature, train_batch
 
 __all__ = ["SweepConfig", "evaluate_trial", "finished_count", "make_storage", "objective_value",
-           "open_study", "retry_lost", "run_batch", "run_sweep", "write_outputs", "write_trials"]  # fmt: skip
+           "open_study", "retry_lost", "run_batch", "run_sweep", "study_storage", "write_outputs",
+           "write_trials"]  # fmt: skip
 
 def evaluate_trial(trainer, state, env_params, cfg: SweepConfig) -> dict[str, Any]:
     """Navigation metrics of one trained trial on the train bank (never the test bank)."""
@@ -55,16 +56,27 @@ def objective_value(metrics: dict[str, Any], objective: str) -> float:
 
 # --------------------------------------------------------------------------- study
 def make_storage(cfg: SweepConfig, out_dir: Path):
+    """The study's storage for a sweep run in this process (``quicknav sweep``)."""
+    return study_storage(cfg.storage, out_dir)
+
+
+def study_storage(url: str | None, folder: Path, prefix: str = ""):
+    """The one rule for where a study lives, for `quicknav sweep` and the service's sweep jobs:
+    ``None``: SQLite in ``folder/study.db`` (one machine); ``redis://``: Optuna's journal on Redis
+    (keys under ``prefix``; a fleet); any other URL: an Optuna RDB storage (``postgresql://``...)."""
     import optuna
 
-    if cfg.storage is None:
-        return optuna.storages.RDBStorage(f"sqlite:///{(out_dir / 'study.db').resolve()}")
-    if cfg.storage.startswith("redis://") or cfg.storage.startswith("rediss://"):
+    if url is None:
+        return optuna.storages.RDBStorage(
+            f"sqlite:///{(Path(folder) / 'study.db').resolve()}",
+            engine_kwargs={"connect_args": {"timeout": 60}},
+        )
+    if url.startswith("redis://") or url.startswith("rediss://"):
         from optuna.storages import JournalStorage
         from optuna.storages.journal import JournalRedisBackend
 
-        return JournalStorage(JournalRedisBackend(cfg.storage))
-    return cfg.storage  # any other Optuna storage URL (e.g. postgresql://)
+        return JournalStorage(JournalRedisBackend(url, prefix=prefix))
+    return url
 
 
 def _sample(trial, space: dict[str, ParamSpec]) -> dict[str, Any]:

@@ -333,21 +333,13 @@ class Worker:
             self.until_done(self.store.finish, job.id, self.id, JobStatus.succeeded, result=result)
 
     def sweep_storage(self, sweep_id: str):
-        """The Optuna storage of a sweep job's study, shared by every worker: journal storage on
-        this store's Redis (keys under quicknav:sweep:<id>:) or SQLite in the sweep's folder."""
-        if self.settings.redis_url:
-            from optuna.storages import JournalStorage
-            from optuna.storages.journal import JournalRedisBackend
+        """The Optuna storage of a sweep job's study, shared by every worker, by the library's one
+        rule (``quicknav_core.sweep.study_storage``): journal storage on this store's Redis (keys
+        under quicknav:sweep:<id>:), or SQLite in the sweep's folder with the embedded store."""
+        from quicknav_core.sweep import study_storage
 
-            return JournalStorage(
-                JournalRedisBackend(self.settings.redis_url, prefix=f"quicknav:sweep:{sweep_id}:")
-            )
-        import optuna
-
-        path = (self.job_dir(sweep_id) / "study.db").resolve()
-        return optuna.storages.RDBStorage(
-            f"sqlite:///{path}", engine_kwargs={"connect_args": {"timeout": 60}}
-        )
+        return study_storage(self.settings.redis_url, self.job_dir(sweep_id),
+                             prefix=f"quicknav:sweep:{sweep_id}:")  # fmt: skip
 
     def trainer_for(self, config):
         """A warm trainer for this exact config (its compiled chunks are reused)."""

@@ -22,7 +22,7 @@ FREE, OCCUPIED, UNKNOWN = 254, 0, 205
 def office(res: float = 0.05) -> np.ndarray:
     """Grey levels, top row first (as the picture is drawn)."""
     w_m, h_m, margin = 20.0, 12.0, 0.6
-    px = lambda m: int(round(m / res))  # noqa: E731
+    px = lambda m: round(m / res)  # noqa: E731
     W, H = px(w_m + 2 * margin), px(h_m + 2 * margin)
     img = np.full((H, W), UNKNOWN, np.uint8)
     x0, y0 = px(margin), px(margin)  # the building's lower-left corner, in pixels from the left/bottom
@@ -39,7 +39,7 @@ def office(res: float = 0.05) -> np.ndarray:
     corridor_lo, corridor_hi = 5.0, 7.0
     box(0, corridor_lo - wall, w_m, wall, OCCUPIED)  # the corridor's walls
     box(0, corridor_hi, w_m, wall, OCCUPIED)
-    for i, x in enumerate(np.arange(4.0, w_m, 4.0)):  # offices 4 m wide on both sides
+    for x in np.arange(4.0, w_m, 4.0):  # offices 4 m wide on both sides
         box(x, 0, wall, corridor_lo, OCCUPIED)
         box(x, corridor_hi, wall, h_m - corridor_hi, OCCUPIED)
     for i, x in enumerate(np.arange(0.0, w_m, 4.0)):
@@ -55,13 +55,13 @@ def office(res: float = 0.05) -> np.ndarray:
 
 
 def warehouse(res: float = 0.1) -> np.ndarray:
-    n = int(round(16.0 / res))
+    n = round(16.0 / res)
     img = np.full((n, n), 255, np.uint8)
-    t = max(1, int(round(0.2 / res)))
+    t = max(1, round(0.2 / res))
     img[:t], img[-t:], img[:, :t], img[:, -t:] = 0, 0, 0, 0
     for x in np.arange(2.5, 14.0, 2.5):  # shelf rows, 0.6 m deep, aisles between
-        c0 = int(round(x / res))
-        img[int(round(2.5 / res)):int(round(13.5 / res)), c0:c0 + int(round(0.6 / res))] = 0
+        c0 = round(x / res)
+        img[round(2.5 / res):round(13.5 / res), c0:c0 + round(0.6 / res)] = 0
     return img
 
 
