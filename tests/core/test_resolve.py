@@ -54,7 +54,7 @@ def test_overrides__another_variant_starts_from_its_defaults():
 
 
 def test_overrides__unknown_keys_and_bad_values_are_named():
-    with pytest.raises(OverrideError, match="unknown field 'gird_size' in env; did you mean 'grid_size'\\? known: room_size"):
+    with pytest.raises(OverrideError, match="unknown field 'gird_size' in env; did you mean 'grid_size'\\? known: rooms, floorplan, maps, room_size"):
         apply_overrides(TrainConfig(), {"env.gird_size": 8})
     with pytest.raises(OverrideError, match="'seed' has no sub-fields"):
         apply_overrides(TrainConfig(), {"seed.x": 1})

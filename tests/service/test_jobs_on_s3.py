@@ -260,3 +260,49 @@ def test_two_machines_resume_from_the_bucket(tmp_path, s3_env):
                 except subprocess.TimeoutExpired:
                     p.kill()
         client.flushdb()
+
+
+def test_a_policy_in_the_bucket_is_served_over_grpc(tmp_path, s3_env):
+    """PolicyService.Load reads a train job's checkpoint from the bucket (the server's machine never
+    had the run folder); with the store down, Load answers UNAVAILABLE naming the store."""
+    import grpc
+    import numpy as np
+    from quicknav_client import RemotePolicy, RolloutError
+
+    from quicknav_core.config import TrainConfig
+    from quicknav_core.export import random_observations
+    from quicknav_core.train import train_run
+    from quicknav_core.train.run import load_run
+    from quicknav_service.rollout.server import BackgroundServer
+
+    url = s3_env.url()
+    trainer_side = S3Artifacts(url, tmp_path / "trainer", retry_s=0)
+    cfg = TrainConfig.model_validate({
+        "env": {"grid_size": 8, "train_rooms": 16, "test_rooms": 8, "lidar_beams": 8, "max_steps": 40},
+        "algorithm": {"name": "ppo", "num_steps": 16, "num_minibatches": 2, "num_epochs": 1},
+        "num_envs": 8, "total_steps": 256, "chunk_steps": 128,
+    })  # fmt: skip
+    train_run(cfg, trainer_side.work_dir("job-mlp"))
+    _, trainer, state, _ = load_run(trainer_side.work_dir("job-mlp"))
+    policy = trainer.policy(state)
+    trainer_side.save("job-mlp")
+    trainer_side.release("job-mlp")
+    settings = Settings(_env_file=None, data_dir=tmp_path / "server", host="127.0.0.1", grpc_port=0,
+                        artifacts_url=url, artifacts_retry_s=0)  # fmt: skip
+    srv = BackgroundServer(settings, port=0).start()
+    try:
+        obs = random_observations(cfg.env, 3, seed=1)
+        with RemotePolicy(f"127.0.0.1:{srv.port}") as rp:
+            rp.load("job-mlp", rows=3)
+            got = rp.act(obs, np.ones(3, bool))
+        _, want = policy.act(policy.initial_carry(3), obs, np.ones(3, bool), None, True)
+        np.testing.assert_allclose(got, np.asarray(want), atol=1e-5)
+        s3_env.stop()
+        try:
+            with RemotePolicy(f"127.0.0.1:{srv.port}") as rp, pytest.raises(RolloutError) as e:
+                rp.load("job-mlp", rows=1)
+            assert e.value.code == grpc.StatusCode.UNAVAILABLE and url in e.value.message
+        finally:
+            s3_env.start()
+    finally:
+        srv.stop()
