@@ -40,6 +40,12 @@ def check_env(env: EnvConfig, s: Settings, loc: Callable[[str], list[str]]) -> I
     for field, name, low in ENV_LIMITS:
         if (msg := over_limit(field, getattr(env, field), s, name, low)) is not None:
             items.append(limit_error(loc(field), msg))
+    if env.rooms == "maps":
+        # a map file named by a client's path is on the client's disk, not on the workers'
+        items.append(limit_error(loc("rooms"), (
+            "rooms='maps' names map files on your disk, which this service's workers cannot"
+            " read; the service runs rooms='carved' and rooms='floorplan' (uploading maps to the"
+            " service is not built yet): train on your maps with `quicknav train` locally")))
     return items
 
 

@@ -44,3 +44,18 @@ def test_limits__an_env_within_them_passes(service):
 
     settings, _ = service
     assert check_env(EnvConfig(grid_size=32, room_size=16, lidar_beams=64), settings, lambda f: [f]) == []
+
+
+def test_limits__floor_plans_run_through_the_service_and_local_map_files_are_refused(service):
+    settings, jobs = service
+    job = jobs.submit_train(TrainJobCreate(preset="demo", overrides={"env.rooms": "floorplan"}))
+    assert job.config["env"]["rooms"] == "floorplan"
+    with pytest.raises(Invalid) as refused:
+        jobs.submit_train(TrainJobCreate(preset="demo", overrides={
+            "env.rooms": "maps", "env.maps": {"train": ["examples/maps/office.yaml"]},
+            "env.grid_size": 32, "env.room_size": 16}))  # fmt: skip
+    [item] = refused.value.items
+    assert item["loc"] == ["overrides", "env.rooms"] and "quicknav train" in item["msg"]
+    with pytest.raises(Refused, match="rooms='maps'"):
+        parse_env_config(pb.Start(config_json=json.dumps(
+            {"rooms": "maps", "maps": {"train": ["x.yaml"]}})), settings)  # fmt: skip
