@@ -13,22 +13,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def configs():
@@ -88,8 +76,9 @@ def main() -> None:
         r = {"rooms": name, "grid": cfg.grid_size, **measure(cfg, args.batch, args.steps, args.repeats)}
         rows.append(r)
         print(f"{name:<16} {r['steps_per_s']:>12,} {r['bank_build_s']:>8} {r['compile_s']:>10}", flush=True)
-    doc = {"machine": f"{cpu_model()}, {os.cpu_count()} cores, {jax.default_backend()},"
-                      f" jax {jax.__version__}",
+    from quicknav_core.bench.machine import machine_info, machine_line
+
+    doc = {"machine": f"{machine_line()}, jax {jax.__version__}", "machine_info": machine_info(),
            "batch": args.batch, "rows": rows}  # fmt: skip
     if args.out:
         args.out.write_text(json.dumps(doc, indent=2) + "\n")
