@@ -13,7 +13,7 @@ commit, run with this checkout's environment), on Redis DB 11 (flushed before an
    happens, the viewers held by a separate process;
 3. reports the API's resident memory at the end.
 
-    uv run python benchmarks/queue.py [--jobs 100000] [--tree DIR] [--label after]
+    uv run python benchmarks/queue_scale.py [--jobs 100000] [--tree DIR] [--label after]
 
 Prints the figures and merges them under `--label` into benchmarks/results/queue.json, which
 holds a before and an after taken in one sitting (run it for both trees, back to back).
