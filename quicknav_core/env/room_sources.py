@@ -59,9 +59,17 @@ def _map_parts(path: Path) -> list[Path]:
 
 def map_rooms(config: EnvConfig, split: Split) -> list[np.ndarray]:
     """Each map of the split as one room (errors name the file and the fix)."""
-    from quicknav_core.env.maps import map_room
+    from quicknav_core.config.env import MapsConfig
+    from quicknav_core.env.maps import YAML_SUFFIXES, MapError, map_room
 
     m = config.maps
+    image_only = [f for f in ("resolution", "occupied_thresh", "free_thresh", "negate")
+                  if getattr(m, f) != MapsConfig.model_fields[f].default]  # fmt: skip
+    yamls = [n for n in map_files(config, split) if Path(n).suffix.lower() in YAML_SUFFIXES]
+    if image_only and yamls:
+        # a map_server YAML names its own scale and thresholds: these would be ignored for it
+        raise MapError(f"{yamls[0]}: env.maps.{', env.maps.'.join(image_only)} apply to plain .png/.pgm"
+                       " images only; a map_server .yaml names its own (edit the .yaml instead)")  # fmt: skip
     read = {"resolution": m.resolution, "occupied_thresh": m.occupied_thresh,
             "free_thresh": m.free_thresh, "negate": m.negate, "unknown_free": m.unknown == "free"}  # fmt: skip
     return [map_room(name, config.cell_size, config.grid_size, **read) for name in map_files(config, split)]

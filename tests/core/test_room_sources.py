@@ -80,7 +80,7 @@ def test_floorplan__rooms_doors_and_a_corridor_look_like_a_floor():
         labels, n = ndimage.label(~closed)
         sizes = np.bincount(labels.ravel())[1:]
         assert n >= 3 and sizes.min() >= plain.floorplan.min_room ** 2, (n, sorted(sizes))
-    # wider doors are wider: the narrowest opening between two rooms is door_width cells
+    # door_width reaches the generator (the plans change with it)
     wide = cfg.model_copy(update={"floorplan": cfg.floorplan.model_copy(update={"door_width": 2})})
     assert not np.array_equal(floorplan_bank(wide, "train", 4), bank[:4])
 
@@ -214,6 +214,11 @@ def test_map__bad_files_are_refused_naming_the_file_and_the_fix(tmp_path):
     big = load_map(good)
     with pytest.raises(MapError, match="grid_size >= 10"):
         to_cells(big, cell=0.5, grid=8)  # 4 m x 4 m needs 8 cells + the ring
+    # a plain-image field with a map_server YAML would be ignored: refused, naming it
+    env = EnvConfig(rooms="maps", maps={"train": [str(good)], "resolution": 0.1}, grid_size=16,
+                    room_size=8.0)  # fmt: skip
+    with pytest.raises(MapError, match=r"env\.maps\.resolution apply to plain"):
+        source_bank(env, "train")
     walled = write_map(tmp_path, np.ones((8, 8), dtype=bool), 0.5)
     env = EnvConfig(rooms="maps", maps={"train": [str(walled)]}, grid_size=16, room_size=8.0)
     with pytest.raises(MapError, match="no free cell"):
