@@ -59,12 +59,11 @@ def _map_parts(path: Path) -> list[Path]:
 
 def map_rooms(config: EnvConfig, split: Split) -> list[np.ndarray]:
     """Each map of the split as one room (errors name the file and the fix)."""
-    from quicknav_core.config.env import MapsConfig
     from quicknav_core.env.maps import YAML_SUFFIXES, MapError, map_room
 
     m = config.maps
     image_only = [f for f in ("resolution", "occupied_thresh", "free_thresh", "negate")
-                  if getattr(m, f) != MapsConfig.model_fields[f].default]  # fmt: skip
+                  if getattr(m, f) != type(m).model_fields[f].default]  # fmt: skip
     yamls = [n for n in map_files(config, split) if Path(n).suffix.lower() in YAML_SUFFIXES]
     if image_only and yamls:
         # a map_server YAML names its own scale and thresholds: these would be ignored for it
