@@ -81,13 +81,28 @@ class S3Server:
         while time.time() < deadline:
             assert self.proc.poll() is None, (self.root / "weed.log").read_text()[-3000:]
             try:
-                # up when the bucket answers (the S3 gateway starts after the filer)
-                if httpx.head(f"{self.endpoint}/{BUCKET}", timeout=1).status_code < 500:
+                # up when an object can be written and read back: the S3 gateway answers before
+                # the volume server behind it serves reads (a GET then answers 500)
+                if httpx.head(f"{self.endpoint}/{BUCKET}", timeout=1).status_code < 500 and self._probe():
                     return self
             except httpx.HTTPError:
                 pass
             time.sleep(0.2)
         raise RuntimeError(f"SeaweedFS did not start: {(self.root / 'weed.log').read_text()[-3000:]}")
+
+    def _probe(self) -> bool:
+        import obstore
+        from obstore.store import S3Store
+
+        store = S3Store(BUCKET, config={"endpoint": self.endpoint, "access_key_id": ACCESS_KEY,
+                                        "secret_access_key": SECRET_KEY, "region": "us-east-1",
+                                        "allow_http": "true"},
+                        retry_config={"max_retries": 0})  # fmt: skip
+        try:
+            obstore.put(store, ".ready-probe", b"ok")
+            return bytes(obstore.get(store, ".ready-probe").bytes()) == b"ok"
+        except Exception:
+            return False
 
     def stop(self) -> None:
         if self.proc is not None and self.proc.poll() is None:
