@@ -137,6 +137,40 @@ class ArtifactsPublic(BaseModel):
     artifacts: list[ArtifactPublic]
 
 
+class MapPublic(BaseModel):
+    """An uploaded map. ``ref`` is how an env config names it: ``env.maps.train: ["map:<id>"]``."""
+
+    id: str = Field(description="digest of the stored map files: the same map uploaded twice is one")
+    ref: str = Field(description="the name to put in env.maps.train / env.maps.test")
+    name: str
+    created: float = Field(description="upload time, seconds since the epoch")
+    files: list[str] = Field(description="the file names as uploaded")
+    width_px: int
+    height_px: int
+    resolution: float = Field(description="metres per pixel")
+    width_m: float
+    height_m: float
+    free_fraction: float = Field(description="share of pixels that are free")
+    unknown_fraction: float = Field(description="share of pixels neither occupied nor free")
+    bytes: int = Field(description="size of the stored map files")
+    preview_m_per_px: float = Field(description="metres per pixel of preview.png")
+    suggested_env: dict[str, Any] = Field(
+        description="env fields that hold this map at 0.5 m cells: rooms, maps.train, grid_size,"
+        " room_size (a starting point; a job may set its own)"
+    )
+    preview_url: str
+    used_by: list[str] = Field(
+        default_factory=list, description="queued or running jobs whose config names this map"
+    )
+
+
+class MapsPublic(BaseModel):
+    """Every uploaded map, newest first."""
+
+    data: list[MapPublic]
+    count: int
+
+
 class Health(BaseModel):
     status: Literal["ok"]
 

@@ -96,6 +96,12 @@ class Settings(BaseSettings):
     heartbeat_s: float = Field(10.0, gt=0.05, le=600)
     max_attempts: int = Field(3, ge=1, le=100)
     max_body_bytes: int = Field(1_000_000, ge=1024)
+    max_map_upload_bytes: int = Field(
+        64_000_000, ge=1024, description="largest POST /maps body (a map's files together), bytes"
+    )
+    max_map_pixels: int = Field(
+        25_000_000, ge=1, le=64_000_000, description="most pixels an uploaded map may have"
+    )
     export_policies: bool = Field(
         True, description="every succeeded train job exports its policy (policy.onnx +"
         " policy.json, `quicknav export`); false skips that step (a few seconds per job)",

@@ -366,7 +366,9 @@ def _enable_jax_cache(settings: Settings) -> None:
         jax.config.update("jax_cuda_visible_devices", settings.devices)
         jax.config.update("jax_rocm_visible_devices", settings.devices)
     set_bank_cache(settings.data_dir / "room-banks")
+    from quicknav_service.maps import install_resolver
 
+    install_resolver(settings)  # env.maps may name uploaded maps (map:<id>)
     enable_compilation_cache(settings.data_dir / "jax-cache")
 
 

@@ -77,7 +77,7 @@ def main() -> None:
     write_pgm(HERE / "office.pgm", office())
     (HERE / "office.yaml").write_text(
         "image: office.pgm\nmode: trinary\nresolution: 0.05\norigin: [-0.6, -0.6, 0.0]\n"
-        "negate: 0\noccupied_thresh: 0.65\nfree_thresh: 0.25\n"
+        "negate: 0\noccupied_thresh: 0.65\nfree_thresh: 0.196\n"
     )
     Image.fromarray(warehouse()).save(HERE / "warehouse.png")
     print("wrote office.yaml, office.pgm, warehouse.png in", HERE)

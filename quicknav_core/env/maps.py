@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +31,33 @@ import numpy as np
 YAML_SUFFIXES = (".yaml", ".yml")
 IMAGE_SUFFIXES = (".pgm", ".png")
 MAX_MAP_PIXELS = 64_000_000  # 8000 x 8000: far above what an env grid can use
+MAP_ID_PREFIX = "map:"  # `map:<id>` names a map uploaded to a QuickNav service (POST /maps)
+
+# Where `map:<id>` names are read from: set by the service's processes (API, workers, Rollout
+# server) to a function that returns the stored map's local .yaml, fetched from the artifact store.
+_map_resolver: Callable[[str], Path] | None = None
+
+
+def set_map_resolver(resolve: Callable[[str], Path] | None) -> None:
+    """Let ``map:<id>`` names be read: ``resolve(id)`` returns the stored map's local .yaml."""
+    global _map_resolver
+    _map_resolver = resolve
+
+
+def is_map_id(name: str) -> bool:
+    return name.startswith(MAP_ID_PREFIX)
+
+
+def map_path(name: str) -> Path:
+    """The local file a map name stands for: a path as given, or a stored map's .yaml."""
+    if not is_map_id(name):
+        return Path(name)
+    map_id = name[len(MAP_ID_PREFIX):]
+    if _map_resolver is None:
+        raise MapError(f"{name}: names a map uploaded to a QuickNav service, which only that"
+                       " service's jobs can read; give a file path here (download the map with"
+                       " `quicknav maps show ID --download DIR`)")  # fmt: skip
+    return _map_resolver(map_id)
 
 
 class MapError(ValueError):
@@ -45,6 +73,7 @@ class OccupancyMap:
     resolution: float  # metres per pixel
     origin: tuple[float, float] = (0.0, 0.0)  # world (x, y) of the lower-left pixel's corner
     meta: dict[str, Any] = field(default_factory=dict)
+    unknown: np.ndarray | None = None  # (H, W) bool, y up: neither occupied nor free (pictures)
 
     @property
     def size_m(self) -> tuple[float, float]:
@@ -82,7 +111,15 @@ def occupancy(grey: np.ndarray, occupied_thresh: float, free_thresh: float, nega
     p = v if negate else 1.0 - v
     occupied = p > occupied_thresh
     free = p < free_thresh
-    return occupied | (~free & ~unknown_free)
+    return occupied | (~free & (not unknown_free))
+
+
+def unknown_pixels(grey: np.ndarray, occupied_thresh: float, free_thresh: float,
+                   negate: bool) -> np.ndarray:  # fmt: skip
+    """Pixels that are neither occupied nor free, y up (for pictures of the map)."""
+    v = grey.astype(np.float64) / 255.0
+    p = v if negate else 1.0 - v
+    return np.ascontiguousarray(((p <= occupied_thresh) & (p >= free_thresh))[::-1])
 
 
 def load_map(path: str | Path, resolution: float | None = None, occupied_thresh: float = 0.65,
@@ -101,7 +138,8 @@ def load_map(path: str | Path, resolution: float | None = None, occupied_thresh:
                        " pixel), or give the map_server .yaml that names it")  # fmt: skip
     grey = _read_image(path)
     blocked = occupancy(grey, occupied_thresh, free_thresh, negate, unknown_free)[::-1]
-    return OccupancyMap(str(path), np.ascontiguousarray(blocked), float(resolution))
+    return OccupancyMap(str(path), np.ascontiguousarray(blocked), float(resolution),
+                        unknown=unknown_pixels(grey, occupied_thresh, free_thresh, negate))  # fmt: skip
 
 
 def _load_yaml(path: Path, unknown_free: bool) -> OccupancyMap:
@@ -149,6 +187,7 @@ def _load_yaml(path: Path, unknown_free: bool) -> OccupancyMap:
     grey = _read_image(image)
     blocked = occupancy(grey, occ, free, negate, unknown_free)[::-1]
     return OccupancyMap(str(path), np.ascontiguousarray(blocked), resolution, (origin[0], origin[1]),
+                        unknown=unknown_pixels(grey, occ, free, negate),
                         meta={"image": str(image), "negate": negate, "mode": mode})  # fmt: skip
 
 

@@ -194,3 +194,41 @@ def rooms_figure(
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+# map pictures: free, unknown and occupied pixels (the colours of the replay's room and walls)
+MAP_FREE, MAP_UNKNOWN, MAP_OCCUPIED = (244, 241, 234), (190, 190, 190), (59, 59, 59)
+
+
+def map_picture_step(shape: tuple[int, ...], max_side: int = 1024) -> int:
+    """Map pixels per picture pixel (a side) of ``map_picture``."""
+    return max(1, -(-max(shape) // max_side))  # ceil
+
+
+def map_picture(blocked: np.ndarray, unknown: np.ndarray | None, max_side: int = 1024) -> np.ndarray:
+    """A loaded map as an RGB picture, top row first, at most ``max_side`` pixels a side.
+
+    ``blocked`` and ``unknown`` are (H, W) bool with y up (``maps.OccupancyMap``). A shrunk picture
+    (``map_picture_step`` map pixels per pixel) keeps a pixel occupied if any pixel it stands for
+    is, so thin walls stay visible; a partial last row or column counts as occupied (the grid's
+    wall beyond the map)."""
+    blocked = np.asarray(blocked, dtype=bool)
+    unknown = np.asarray(unknown, dtype=bool) if unknown is not None else None
+    occupied = blocked & ~unknown if unknown is not None else blocked
+    step = map_picture_step(blocked.shape, max_side)
+    if step > 1:
+        h, w = blocked.shape
+        pad = ((0, -h % step), (0, -w % step))
+
+        def shrink(a: np.ndarray, edge: bool) -> np.ndarray:
+            a = np.pad(a, pad, constant_values=edge)
+            return a.reshape(a.shape[0] // step, step, a.shape[1] // step, step).any(axis=(1, 3))
+
+        occupied = shrink(occupied, True)
+        unknown = shrink(unknown, False) & ~occupied if unknown is not None else None
+    rgb = np.empty((*occupied.shape, 3), dtype=np.uint8)
+    rgb[:] = MAP_FREE
+    if unknown is not None:
+        rgb[unknown] = MAP_UNKNOWN
+    rgb[occupied] = MAP_OCCUPIED
+    return rgb[::-1].copy()

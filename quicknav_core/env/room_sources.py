@@ -34,10 +34,15 @@ def source_key(config: EnvConfig, split: Split) -> list:
     """What a floor-plan or map bank depends on beyond the grid (for the bank cache's key)."""
     if config.rooms == "floorplan":
         return ["floorplan", config.floorplan.model_dump()]
+    from quicknav_core.env.maps import is_map_id, map_path
+
     digests = []
     for name in map_files(config, split):
+        if is_map_id(name):  # a stored map never changes: its id is a digest of its files
+            digests.append(name)
+            continue
         h = hashlib.sha256()
-        path = Path(name)
+        path = map_path(name)
         for part in _map_parts(path):
             h.update(part.read_bytes() if part.is_file() else b"missing:" + str(part).encode())
         digests.append(h.hexdigest()[:16])
@@ -59,19 +64,28 @@ def _map_parts(path: Path) -> list[Path]:
 
 def map_rooms(config: EnvConfig, split: Split) -> list[np.ndarray]:
     """Each map of the split as one room (errors name the file and the fix)."""
-    from quicknav_core.env.maps import YAML_SUFFIXES, MapError, map_room
+    from quicknav_core.env.maps import YAML_SUFFIXES, MapError, is_map_id, map_path, map_room
 
     m = config.maps
     image_only = [f for f in ("resolution", "occupied_thresh", "free_thresh", "negate")
                   if getattr(m, f) != type(m).model_fields[f].default]  # fmt: skip
-    yamls = [n for n in map_files(config, split) if Path(n).suffix.lower() in YAML_SUFFIXES]
+    # a stored map (`map:<id>`) is a map_server .yaml too
+    yamls = [n for n in map_files(config, split)
+             if is_map_id(n) or Path(n).suffix.lower() in YAML_SUFFIXES]  # fmt: skip
     if image_only and yamls:
         # a map_server YAML names its own scale and thresholds: these would be ignored for it
         raise MapError(f"{yamls[0]}: env.maps.{', env.maps.'.join(image_only)} apply to plain .png/.pgm"
                        " images only; a map_server .yaml names its own (edit the .yaml instead)")  # fmt: skip
     read = {"resolution": m.resolution, "occupied_thresh": m.occupied_thresh,
             "free_thresh": m.free_thresh, "negate": m.negate, "unknown_free": m.unknown == "free"}  # fmt: skip
-    return [map_room(name, config.cell_size, config.grid_size, **read) for name in map_files(config, split)]
+    rooms = []
+    for name in map_files(config, split):
+        path = map_path(name)
+        try:
+            rooms.append(map_room(path, config.cell_size, config.grid_size, **read))
+        except MapError as e:  # name a stored map by its id, not by the cache file it was read from
+            raise MapError(str(e).replace(str(path), name)) if str(path) != name else e from None
+    return rooms
 
 
 def source_bank(config: EnvConfig, split: Split, train: np.ndarray | None = None) -> np.ndarray:

@@ -161,6 +161,27 @@ def run_episodes(
     )  # fmt: skip
 
 
+def _map_placements(config: EnvConfig) -> dict[str, Any]:
+    """For maps: where each map's picture lies in the room (its lower-left corner at cell (1, 1),
+    its size in metres), and under ``_rooms`` each map's wall grid."""
+    if config.rooms != "maps":
+        return {}
+    from quicknav_core.env.maps import load_map, map_path
+    from quicknav_core.env.room_sources import map_files, map_rooms
+
+    out: dict[str, Any] = {"_rooms": {}}
+    for split in ("train", "test"):
+        read = {"resolution": config.maps.resolution, "occupied_thresh": config.maps.occupied_thresh,
+                "free_thresh": config.maps.free_thresh, "negate": config.maps.negate}  # fmt: skip
+        for name, room in zip(map_files(config, split), map_rooms(config, split), strict=True):
+            m = load_map(map_path(name), **read)
+            width_m, height_m = m.size_m
+            out[name] = {"x0": config.cell_size, "y0": config.cell_size,
+                         "width_m": round(width_m, 6), "height_m": round(height_m, 6)}  # fmt: skip
+            out["_rooms"][name] = np.asarray(room, dtype=bool)
+    return out
+
+
 def replay_data(ep: Episodes, config: EnvConfig, agent_name: str) -> dict[str, Any]:
     """The picture episodes step by step, for the browser's replay (``replay.json``): walls as
     rows of '#'/'.' (row = y), poses and lidar ranges rounded to millimetres, hit codes."""
@@ -183,8 +204,14 @@ def replay_data(ep: Episodes, config: EnvConfig, agent_name: str) -> dict[str, A
             "ranges": np.round(ep.gif["lidar_ranges"][i, :n], 3).tolist(),
             "hits": ep.gif["lidar_hits"][i, :n].astype(int).tolist(),
         })  # fmt: skip
+    maps = _map_placements(config)
+    if maps:  # which map each episode drove in (its walls are that map's room)
+        rooms = {name: room.tobytes() for name, room in maps.pop("_rooms").items()}
+        for e, walls in zip(episodes, ep.walls, strict=False):
+            e["map"] = next((n for n, r in rooms.items() if r == np.asarray(walls, dtype=bool).tobytes()), None)
     return {
         "agent": agent_name,
+        **({"maps": maps} if maps else {}),
         "room_size": config.room_size,
         "grid_size": config.grid_size,
         "robot_radius": config.robot_radius,

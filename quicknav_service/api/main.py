@@ -14,7 +14,7 @@ from quicknav_service.api import docs, errors, openapi
 from quicknav_service.api.event_hub import EventHub
 from quicknav_service.api.metrics import RequestMetrics
 from quicknav_service.api.middleware import BodyLimit, CrossSiteGuard, TrustedHosts
-from quicknav_service.api.routes import artifacts, events, jobs, ops
+from quicknav_service.api.routes import artifacts, events, jobs, maps, ops
 from quicknav_service.api.routes.events import StreamSlots
 from quicknav_service.auth import FailureLimiter
 from quicknav_service.jobs.models import JobStore
@@ -87,7 +87,8 @@ def create_app(
     docs.install(app)
     errors.install(app)
     openapi.install(app)
-    app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
+    app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes,
+                       uploads={"/maps": settings.max_map_upload_bytes})  # fmt: skip
     app.add_middleware(CrossSiteGuard, origins=settings.trusted_origins)
     app.add_middleware(TrustedHosts, hosts=settings.trusted_hosts)
     app.add_middleware(RequestMetrics)  # outermost: it sees every answer, refusals included
@@ -95,6 +96,7 @@ def create_app(
     app.include_router(jobs.router)
     app.include_router(events.router)
     app.include_router(artifacts.router)
+    app.include_router(maps.router)
     app.include_router(ops.router)
     app.include_router(_documented(web.auth, {"POST": errors.responses(400, 401, 413, 422)}))
     app.include_router(web.router)

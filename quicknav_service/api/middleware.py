@@ -55,6 +55,9 @@ class TrustedHosts:
         return await self.app(scope, receive, send)
 
 
+UPLOAD_PATHS = ("/maps",)  # POST routes that take multipart/form-data
+
+
 class CrossSiteGuard:
     """Requests that change state must come from this server's own pages or a client that is not
     a browser: where a browser says where a request comes from (``Origin``), it must be this
@@ -81,7 +84,10 @@ class CrossSiteGuard:
                 return await response(scope, receive, send)
         if scope["method"] == "POST":
             kind = (_header(scope, b"content-type") or b"").split(b";")[0].strip().lower()
-            if kind != b"application/json" and _header(scope, WEB_HEADER) is None:
+            # a map upload is a file form: safe as any POST here, because a browser session
+            # needs the web header anyway (require_token) and a token never rides cross-site
+            upload = kind == b"multipart/form-data" and scope["path"] in UPLOAD_PATHS
+            if kind != b"application/json" and not upload and _header(scope, WEB_HEADER) is None:
                 response = JSONResponse({"detail": (
                     "a POST must send a JSON body (Content-Type: application/json; '{}' where"
                     " the route takes no fields) or the header X-QuickNav-Web: 1; got"
@@ -94,20 +100,25 @@ class BodyLimit:
     """Refuse request bodies over ``max_bytes`` with 413: by Content-Length up front, and by
     counting for chunked bodies. Pure ASGI (a BaseHTTPMiddleware costs a task per request)."""
 
-    def __init__(self, app, max_bytes: int):
+    def __init__(self, app, max_bytes: int, uploads: dict[str, int] | None = None):
         self.app = app
         self.max_bytes = max_bytes
+        self.uploads = uploads or {}  # POST path -> its own limit (file uploads)
 
-    def _too_large(self, size: int | str) -> str:
-        return f"request body of {size} bytes exceeds the limit of {self.max_bytes} bytes"
+    @staticmethod
+    def _too_large(size: int | str, limit: int, setting: str) -> str:
+        return f"request body of {size} bytes exceeds the limit of {limit} bytes ({setting})"
 
     async def __call__(self, scope, receive, send):
         if scope["type"] != "http":
             return await self.app(scope, receive, send)
+        limit, setting = self.max_bytes, "QUICKNAV_MAX_BODY_BYTES"
+        if scope["method"] == "POST" and scope["path"] in self.uploads:
+            limit, setting = self.uploads[scope["path"]], "QUICKNAV_MAX_MAP_UPLOAD_BYTES"
         for name, value in scope["headers"]:
-            if name == b"content-length" and value.isdigit() and int(value) > self.max_bytes:
+            if name == b"content-length" and value.isdigit() and int(value) > limit:
                 response = JSONResponse(
-                    {"detail": self._too_large(value.decode())}, status_code=413
+                    {"detail": self._too_large(value.decode(), limit, setting)}, status_code=413
                 )
                 return await response(scope, receive, send)
         received = 0
@@ -117,8 +128,8 @@ class BodyLimit:
             message = await receive()
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
-                if received > self.max_bytes:
-                    raise HTTPException(413, self._too_large(f"more than {received}"))
+                if received > limit:
+                    raise HTTPException(413, self._too_large(f"more than {received}", limit, setting))
             return message
 
         return await self.app(scope, counted, send)

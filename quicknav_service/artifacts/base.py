@@ -104,3 +104,18 @@ class ArtifactStore(ABC):
     @abstractmethod
     def check(self) -> None:
         """Raise ArtifactUnavailable when the store cannot be reached."""
+
+    # ---------------------------------------------------------------- folders that are not jobs
+    # (uploaded maps: ``maps/<id>/``); list, read_bytes, download and delete take them as well
+    @abstractmethod
+    def put_bytes(self, folder: str, name: str, data: bytes) -> None:
+        """Store one small file as ``folder``'s ``name`` (replacing it whole)."""
+
+    @abstractmethod
+    def folders(self, parent: str) -> list[str]:
+        """The names of the folders under ``parent``, sorted."""
+
+    @abstractmethod
+    def local_folder(self, folder: str) -> Path | None:
+        """A local folder holding every file of ``folder`` (an object store's are downloaded
+        once into this machine's cache: such folders never change); None if it has none."""

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import shutil
+import uuid
 from pathlib import Path
 
 from quicknav_service.artifacts.base import PARTIAL_DIRS, ArtifactInfo, ArtifactStore
@@ -68,3 +69,18 @@ class LocalArtifacts(ArtifactStore):
 
     def check(self) -> None:
         """The data folder's own check (free space, writes) is /readyz's disk check."""
+
+    def put_bytes(self, folder: str, name: str, data: bytes) -> None:
+        path = self.work_dir(folder) / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f"{path.name}.{uuid.uuid4().hex[:8]}.tmp")
+        tmp.write_bytes(data)
+        tmp.replace(path)
+
+    def folders(self, parent: str) -> list[str]:
+        root = self.work_dir(parent)
+        return sorted(p.name for p in root.iterdir() if p.is_dir()) if root.is_dir() else []
+
+    def local_folder(self, folder: str) -> Path | None:
+        path = self.work_dir(folder)
+        return path if path.is_dir() and any(path.iterdir()) else None

@@ -344,6 +344,26 @@ class S3Artifacts(ArtifactStore):
     def check(self) -> None:
         self._size(".quicknav-probe")  # NotFound is an answer: the store is up
 
+    def put_bytes(self, folder: str, name: str, data: bytes) -> None:
+        self._put(f"{folder}/{name}", data)
+
+    def folders(self, parent: str) -> list[str]:
+        base = f"{parent}/"
+        return sorted({k[len(base):].split("/", 1)[0] for k, _ in self._keys(base) if "/" in k[len(base):]})
+
+    def local_folder(self, folder: str) -> Path | None:
+        target = self.cache.parent / folder
+        done = target / ".complete"
+        if done.exists():
+            return target
+        keys = self._keys(f"{folder}/")
+        if not keys:
+            return None
+        for key, _ in keys:
+            self._fetch(key, target / key[len(folder) + 1:])
+        done.touch()
+        return target
+
 
 def _private(rel: Path) -> bool:
     """Paths that are the store's bookkeeping or a checkpoint's local files, never listed as

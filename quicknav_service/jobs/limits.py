@@ -40,12 +40,34 @@ def check_env(env: EnvConfig, s: Settings, loc: Callable[[str], list[str]]) -> I
     for field, name, low in ENV_LIMITS:
         if (msg := over_limit(field, getattr(env, field), s, name, low)) is not None:
             items.append(limit_error(loc(field), msg))
-    if env.rooms == "maps":
-        # a map file named by a client's path is on the client's disk, not on the workers'
-        items.append(limit_error(loc("rooms"), (
-            "rooms='maps' names map files on your disk, which this service's workers cannot"
-            " read; the service runs rooms='carved' and rooms='floorplan' (uploading maps to the"
-            " service is not built yet): train on your maps with `quicknav train` locally")))
+    if env.rooms == "maps" and env.maps is not None:
+        from quicknav_service.maps import install_resolver
+
+        install_resolver(s)  # uploaded maps (map:<id>) are read from this server's artifact store
+        items += check_maps(env, loc)
+    return items
+
+
+def check_maps(env: EnvConfig, loc: Callable[[str], list[str]]) -> Items:
+    """A service reads only the maps uploaded to it (``map:<id>``), and each must fit the env's
+    grid: refused here, naming the entry, rather than when a worker builds the rooms."""
+    from quicknav_core.env.maps import MAP_ID_PREFIX, MapError, is_map_id
+    from quicknav_core.env.room_sources import map_rooms
+
+    items: Items = []
+    for split in ("train", "test"):
+        for i, name in enumerate(getattr(env.maps, split) or []):
+            if not is_map_id(name):
+                items.append(limit_error([*loc(f"maps.{split}"), i], (
+                    f"{name!r} is a file on your disk, which this service's workers cannot read:"
+                    f" upload it (POST /maps, `quicknav maps upload`) and name it {MAP_ID_PREFIX}<id>")))
+    if items:
+        return items
+    for split in ("train", "test") if env.maps.test else ("train",):
+        try:
+            map_rooms(env, split)
+        except MapError as e:
+            items.append(limit_error(loc(f"maps.{split}"), str(e)))
     return items
 
 
@@ -151,7 +173,7 @@ def check_eval(cfg: EvalConfig, s: Settings) -> Items:
             f"episodes={cfg.episodes} exceeds this server's limit max_eval_episodes={s.max_eval_episodes}",
         ))  # fmt: skip
     if cfg.env is not None:
-        items += check_env(cfg.env, s, lambda field: ["env", field])
+        items += check_env(cfg.env, s, lambda field: ["env", *field.split(".")])
     if items:
         return items
     from quicknav_core.train.memory import eval_memory

@@ -335,6 +335,9 @@ class RolloutServicer(pb_grpc.RolloutServiceServicer):
             from quicknav_core.env.rooms import set_bank_cache
 
             set_bank_cache(s.data_dir / "room-banks")  # a bank is carved once per config
+            from quicknav_service.maps import install_resolver
+
+            install_resolver(s)  # a Start may name uploaded maps (map:<id>)
             if groups == 1:
                 env = BatchedEnv(config, num_envs, seed=start.seed % 2**32, split=split)
                 return env, [], env.reset()

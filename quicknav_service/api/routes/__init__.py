@@ -1,2 +1,2 @@
 """One short module per resource: jobs (submit, list, cancel, delete), events (SSE), artifacts
-(files, metrics history), ops (health, readiness, presets, Prometheus)."""
+(files, metrics history), maps (uploaded building maps), ops (health, readiness, presets, Prometheus)."""

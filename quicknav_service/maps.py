@@ -1,0 +1,242 @@
+"""Uploaded maps: building maps stored with the jobs' artifacts and named by id in env configs.
+
+A map is uploaded as a ROS map_server pair (``.yaml`` + its ``.pgm``/``.png``) or as a plain
+``.png``/``.pgm`` with its resolution. Either way it is stored as a map_server pair under the
+artifact store's ``maps/<id>/`` (``map.yaml`` naming ``map.pgm`` or ``map.png``), with
+``meta.json`` (what ``GET /maps/{id}`` answers) and ``preview.png``. The id is a digest of the two
+map files, so the same map uploaded twice is one map, and a stored map never changes: a worker
+that has fetched it once reads its own copy (``local_yaml``).
+
+A config names a stored map as ``map:<id>`` in ``env.maps.train`` / ``env.maps.test``; every
+service process registers ``local_yaml`` with the library (``maps.set_map_resolver``), so the env,
+its NumPy twin and the checks read it like a file.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import math
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path, PurePosixPath
+from typing import Any
+
+from quicknav_core.env.maps import (
+    IMAGE_SUFFIXES,
+    MAP_ID_PREFIX,
+    YAML_SUFFIXES,
+    MapError,
+    load_map,
+)
+from quicknav_service.artifacts import ArtifactStore
+
+MAPS = "maps"  # the artifact store's folder of uploaded maps
+ID_LENGTH = 16  # hex digits of the digest that names a map
+SUGGESTED_CELL_M = 0.5  # the env's default cell (room_size 8 m / grid_size 16)
+
+
+class MapUploadError(Exception):
+    """An upload that cannot be stored: ``field`` names the form field, ``status`` the HTTP code."""
+
+    def __init__(self, field: str, message: str, status: int = 422):
+        super().__init__(message)
+        self.field = field
+        self.message = message
+        self.status = status
+
+
+@dataclass(frozen=True)
+class UploadedFile:
+    filename: str
+    data: bytes
+
+
+def valid_id(map_id: str) -> bool:
+    return len(map_id) == ID_LENGTH and all(c in "0123456789abcdef" for c in map_id)
+
+
+def _suffix(name: str) -> str:
+    return PurePosixPath(name).suffix.lower()
+
+
+def _canonical(files: list[UploadedFile], resolution: float | None, negate: bool | None,
+               occupied_thresh: float | None, free_thresh: float | None) -> tuple[bytes, str, bytes]:  # fmt: skip
+    """The stored pair: (map.yaml's bytes, the image's suffix, the image's bytes)."""
+    import yaml
+
+    yamls = [f for f in files if _suffix(f.filename) in YAML_SUFFIXES]
+    images = [f for f in files if _suffix(f.filename) in IMAGE_SUFFIXES]
+    others = [f.filename for f in files if f not in yamls and f not in images]
+    if others:
+        raise MapUploadError("files", f"{others[0]!r} is neither a map_server .yaml nor a .pgm/.png"
+                             " image; upload a .yaml with its image, or one image")  # fmt: skip
+    if len(yamls) > 1 or len(images) != 1:
+        raise MapUploadError("files", f"got {len(yamls)} .yaml and {len(images)} image file(s);"
+                             " upload one map: a map_server .yaml with the one image it names, or"
+                             " one .png/.pgm image with its resolution")  # fmt: skip
+    image = images[0]
+    if yamls:
+        given = [n for n, v in (("resolution", resolution), ("negate", negate),
+                                ("occupied_thresh", occupied_thresh), ("free_thresh", free_thresh))
+                 if v is not None]  # fmt: skip
+        if given:
+            raise MapUploadError(given[0], f"{given[0]} is for a plain image; {yamls[0].filename}"
+                                 " names its own (edit the .yaml instead)")  # fmt: skip
+        try:
+            doc = yaml.safe_load(yamls[0].data.decode())
+        except (yaml.YAMLError, UnicodeDecodeError) as e:
+            raise MapUploadError("files", f"{yamls[0].filename}: not valid YAML"
+                                 f" ({str(e).splitlines()[0]})") from None  # fmt: skip
+        if not isinstance(doc, dict) or "image" not in doc:
+            raise MapUploadError("files", f"{yamls[0].filename}: a map_server YAML is a mapping"
+                                 " with image, resolution and origin; 'image' is missing")  # fmt: skip
+        named = PurePosixPath(str(doc["image"]).replace("\\", "/")).name
+        if named != PurePosixPath(image.filename).name:
+            raise MapUploadError("files", f"{yamls[0].filename} names image {named!r}, but the"
+                                 f" image uploaded is {image.filename!r}: upload the image it names")  # fmt: skip
+        doc["image"] = "map" + _suffix(image.filename)
+    else:
+        if resolution is None:
+            raise MapUploadError("resolution", f"{image.filename} is a plain image: give its"
+                                 " resolution (metres per pixel, > 0), or upload the map_server"
+                                 " .yaml that names it")  # fmt: skip
+        occ = 0.65 if occupied_thresh is None else occupied_thresh
+        free = 0.196 if free_thresh is None else free_thresh
+        doc = {"image": "map" + _suffix(image.filename), "mode": "trinary",
+               "resolution": resolution, "origin": [0.0, 0.0, 0.0], "negate": int(bool(negate)),
+               "occupied_thresh": occ, "free_thresh": free}  # fmt: skip
+    text = yaml.safe_dump(doc, sort_keys=False)
+    return text.encode(), _suffix(image.filename), image.data
+
+
+class MapLibrary:
+    """The uploaded maps of one artifact store."""
+
+    def __init__(self, artifacts: ArtifactStore, max_pixels: int):
+        self.artifacts = artifacts
+        self.max_pixels = max_pixels
+
+    # ---------------------------------------------------------------- adding
+    def add(self, files: list[UploadedFile], name: str | None = None, resolution: float | None = None,
+            negate: bool | None = None, occupied_thresh: float | None = None,
+            free_thresh: float | None = None) -> dict[str, Any]:  # fmt: skip
+        """Check an upload by reading it as the env will, store it; its metadata."""
+        from PIL import Image
+
+        from quicknav_core.env.render import map_picture, map_picture_step
+
+        for field, v in (("resolution", resolution), ("occupied_thresh", occupied_thresh),
+                         ("free_thresh", free_thresh)):  # fmt: skip
+            if v is not None and not (math.isfinite(v) and v > 0 and (field == "resolution" or v <= 1)):
+                allowed = "> 0 (metres per pixel)" if field == "resolution" else "in (0, 1]"
+                raise MapUploadError(field, f"{field}={v}: allowed {allowed}")
+        yaml_bytes, suffix, image_bytes = _canonical(files, resolution, negate, occupied_thresh,
+                                                     free_thresh)  # fmt: skip
+        image_name = next(f.filename for f in files if _suffix(f.filename) in IMAGE_SUFFIXES)
+        try:
+            with Image.open(io.BytesIO(image_bytes)) as im:
+                width, height = im.size
+        except Exception:
+            raise MapUploadError("files", f"{image_name}: not a PGM or PNG image (a map_server map"
+                                 " is a binary P5 or text P2 PGM)") from None  # fmt: skip
+        if width * height > self.max_pixels:
+            raise MapUploadError("files", f"{image_name}: {width} x {height} pixels is more than the"
+                                 f" {self.max_pixels:,} this server takes (QUICKNAV_MAX_MAP_PIXELS);"
+                                 " save the map at a coarser resolution", status=413)  # fmt: skip
+        with tempfile.TemporaryDirectory() as tmp:
+            folder = Path(tmp)
+            (folder / "map.yaml").write_bytes(yaml_bytes)
+            (folder / f"map{suffix}").write_bytes(image_bytes)
+            try:
+                m = load_map(folder / "map.yaml")
+            except MapError as e:
+                msg = str(e).replace(str(folder / f"map{suffix}"), image_name)
+                raise MapUploadError("files", msg.replace(str(folder / "map.yaml"), "the map")) from None
+        free = int((~m.blocked).sum())
+        if free == 0:
+            raise MapUploadError("files", f"{image_name}: no free pixel: every pixel is occupied or"
+                                 " unknown (check negate and the thresholds)")  # fmt: skip
+        map_id = hashlib.sha256(yaml_bytes + b"\0" + image_bytes).hexdigest()[:ID_LENGTH]
+        existing = self.get(map_id)
+        if existing is not None:
+            return existing
+        width_m, height_m = m.size_m
+        grid = max(math.ceil(width_m / SUGGESTED_CELL_M - 1e-9), math.ceil(height_m / SUGGESTED_CELL_M - 1e-9)) + 2
+        step = map_picture_step(m.blocked.shape)
+        preview = io.BytesIO()
+        Image.fromarray(map_picture(m.blocked, m.unknown)).save(preview, format="PNG")
+        meta = {
+            "id": map_id,
+            "ref": MAP_ID_PREFIX + map_id,
+            "name": (name or PurePosixPath(image_name).stem)[:200],
+            "created": time.time(),
+            "files": [f.filename for f in files],
+            "width_px": width,
+            "height_px": height,
+            "resolution": m.resolution,
+            "width_m": round(width_m, 6),
+            "height_m": round(height_m, 6),
+            "free_fraction": round(free / m.blocked.size, 4),
+            "unknown_fraction": round(float(m.unknown.mean()) if m.unknown is not None else 0.0, 4),
+            "bytes": len(yaml_bytes) + len(image_bytes),
+            "preview_m_per_px": m.resolution * step,
+            # an env that holds the map at the default 0.5 m cells (a starting point, not a rule)
+            "suggested_env": {"rooms": "maps", "maps": {"train": [MAP_ID_PREFIX + map_id]},
+                              "grid_size": grid, "room_size": grid * SUGGESTED_CELL_M},
+        }  # fmt: skip
+        folder = f"{MAPS}/{map_id}"
+        self.artifacts.put_bytes(folder, f"map{suffix}", image_bytes)
+        self.artifacts.put_bytes(folder, "map.yaml", yaml_bytes)
+        self.artifacts.put_bytes(folder, "preview.png", preview.getvalue())
+        self.artifacts.put_bytes(folder, "meta.json", json.dumps(meta).encode())  # last: complete
+        return meta
+
+    # ---------------------------------------------------------------- reading
+    def get(self, map_id: str) -> dict[str, Any] | None:
+        if not valid_id(map_id):
+            return None
+        data = self.artifacts.read_bytes(f"{MAPS}/{map_id}", "meta.json")
+        return json.loads(data) if data is not None else None
+
+    def list(self) -> list[dict[str, Any]]:
+        """Every stored map, newest first."""
+        found = [m for i in self.artifacts.folders(MAPS) if (m := self.get(i)) is not None]
+        return sorted(found, key=lambda m: -m["created"])
+
+    def preview(self, map_id: str) -> bytes | None:
+        return self.artifacts.read_bytes(f"{MAPS}/{map_id}", "preview.png") if valid_id(map_id) else None
+
+    def local_yaml(self, map_id: str) -> Path:
+        """The stored map's ``map.yaml`` on this machine (MapError naming the id if none)."""
+        folder = self.artifacts.local_folder(f"{MAPS}/{map_id}") if valid_id(map_id) else None
+        if folder is None or not (folder / "meta.json").exists():
+            raise MapError(f"{MAP_ID_PREFIX}{map_id}: no such map on this server (GET /maps lists"
+                           " them; upload one with POST /maps)")  # fmt: skip
+        return folder / "map.yaml"
+
+    def delete(self, map_id: str) -> None:
+        self.artifacts.delete(f"{MAPS}/{map_id}")
+
+
+def maps_named(env: dict[str, Any] | None) -> set[str]:
+    """The stored map ids an env config (as JSON) names."""
+    maps = (env or {}).get("maps") or {}
+    names = [*(maps.get("train") or []), *(maps.get("test") or [])]
+    return {n[len(MAP_ID_PREFIX):] for n in names if isinstance(n, str) and n.startswith(MAP_ID_PREFIX)}
+
+
+def library(settings) -> MapLibrary:
+    """The maps of the artifact store the settings name."""
+    from quicknav_service.artifacts import make_artifacts
+
+    return MapLibrary(make_artifacts(settings), settings.max_map_pixels)
+
+
+def install_resolver(settings) -> None:
+    """Let this process's envs read ``map:<id>`` names from the settings' artifact store."""
+    from quicknav_core.env.maps import set_map_resolver
+
+    set_map_resolver(library(settings).local_yaml)

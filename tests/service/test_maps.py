@@ -1,0 +1,243 @@
+"""Uploaded maps over HTTP against a live server: upload, read back, bad files, configs naming maps
+by id, delete while in use, a job on an uploaded map, and the store's copy on another machine."""
+
+from __future__ import annotations
+
+import io
+import json
+
+import httpx
+import numpy as np
+import pytest
+from PIL import Image
+
+from quicknav_core.env.maps import load_map, set_map_resolver
+from tests.service.conftest import LiveServer
+from tests.service.test_api import TINY, wait_status
+
+RES = 0.05  # metres per pixel of the maps drawn here
+FREE, OCCUPIED, UNKNOWN = 254, 0, 205
+
+
+def room_picture(side_m: float = 7.0, margin_m: float = 0.3) -> np.ndarray:
+    """Grey levels, top row first: a square room with a wall across most of it, unknown outside."""
+    px = lambda m: round(m / RES)  # noqa: E731
+    n = px(side_m + 2 * margin_m)
+    img = np.full((n, n), UNKNOWN, np.uint8)
+    m, s = px(margin_m), px(side_m)
+    img[m:m + s, m:m + s] = OCCUPIED
+    t = px(0.1)  # 10 cm walls
+    img[m + t:m + s - t, m + t:m + s - t] = FREE
+    # a wall from the left, 60 % across, at the middle height (top row first)
+    mid = m + s // 2
+    img[mid:mid + t, m:m + int(0.6 * s)] = OCCUPIED
+    return img
+
+
+def pgm(img: np.ndarray) -> bytes:
+    h, w = img.shape
+    return f"P5\n{w} {h}\n255\n".encode() + img.tobytes()
+
+
+def yaml_for(image: str = "room.pgm", **extra) -> bytes:
+    fields = {"image": image, "mode": "trinary", "resolution": RES, "origin": "[-0.3, -0.3, 0.0]",
+              "negate": 0, "occupied_thresh": 0.65, "free_thresh": 0.196, **extra}  # fmt: skip
+    return "".join(f"{k}: {v}\n" for k, v in fields.items()).encode()
+
+
+def png(img: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    Image.fromarray(img).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def upload(url: str, files: list[tuple[str, bytes]], **form) -> httpx.Response:
+    return httpx.post(f"{url}/maps", files=[("files", (n, b)) for n, b in files],
+                      data={k: str(v) for k, v in form.items()}, timeout=30)  # fmt: skip
+
+
+@pytest.fixture
+def server(tmp_path):
+    with LiveServer(tmp_path, max_map_pixels=400_000) as s:
+        yield s
+    set_map_resolver(None)  # the service installed its store's resolver in this process
+
+
+def test_upload__read_back_as_the_env_reads_it(server, tmp_path):
+    img = room_picture()
+    r = upload(server.url, [("room.yaml", yaml_for()), ("room.pgm", pgm(img))], name="test room")
+    assert r.status_code == 201, r.text
+    meta = r.json()
+    assert r.headers["location"] == f"/maps/{meta['id']}" and meta["ref"] == f"map:{meta['id']}"
+    assert meta["name"] == "test room" and meta["files"] == ["room.yaml", "room.pgm"]
+    assert (meta["width_px"], meta["height_px"]) == (152, 152) and meta["resolution"] == RES
+    assert meta["width_m"] == pytest.approx(7.6)
+    assert meta["unknown_fraction"] == pytest.approx(float((img == UNKNOWN).mean()), abs=1e-4)
+    assert meta["free_fraction"] == pytest.approx(float((img == FREE).mean()), abs=1e-4)
+    # 7.6 m at 0.5 m cells: 16 cells and the outer ring
+    assert meta["suggested_env"] == {"rooms": "maps", "maps": {"train": [meta["ref"]]},
+                                     "grid_size": 18, "room_size": 9.0}  # fmt: skip
+    # the same files again: the same map
+    again = upload(server.url, [("room.yaml", yaml_for()), ("room.pgm", pgm(img))])
+    assert again.status_code == 201 and again.json()["id"] == meta["id"]
+    listed = httpx.get(f"{server.url}/maps").json()
+    assert listed["count"] == 1 and listed["data"][0]["id"] == meta["id"]
+    assert httpx.get(f"{server.url}/maps/{meta['id']}").json() == {**meta, "used_by": []}
+
+    # the stored pair is a map_server map that reads back to the same occupancy, pixel for pixel
+    for name in ("map.yaml", "map.pgm"):
+        got = httpx.get(f"{server.url}/maps/{meta['id']}/files/{name}")
+        assert got.status_code == 200
+        (tmp_path / name).write_bytes(got.content)
+    assert (tmp_path / "map.pgm").read_bytes() == pgm(img)
+    stored = load_map(tmp_path / "map.yaml")
+    (tmp_path / "orig.pgm").write_bytes(pgm(img))
+    (tmp_path / "orig.yaml").write_bytes(yaml_for("orig.pgm"))
+    original = load_map(tmp_path / "orig.yaml")
+    assert np.array_equal(stored.blocked, original.blocked)
+    assert stored.resolution == original.resolution
+    # map_server's origin is where the map sits in the robot's world; QuickNav lays the map's
+    # lower-left corner at cell (1, 1) whatever it is, so the stored pair keeps it as uploaded
+    assert stored.origin == (-0.3, -0.3)
+
+    # the preview: the picture the right way up (the occupied wall at the middle, from the left)
+    prev = httpx.get(f"{server.url}{meta['preview_url']}")
+    assert prev.status_code == 200 and prev.headers["content-type"] == "image/png"
+    rgb = np.asarray(Image.open(io.BytesIO(prev.content)).convert("RGB"))
+    assert rgb.shape == (152, 152, 3)
+    dark = rgb.sum(axis=2) < 300
+    assert np.array_equal(dark, img == OCCUPIED)
+    grey = (rgb == (190, 190, 190)).all(axis=2)
+    assert np.array_equal(grey, img == UNKNOWN)
+    assert httpx.get(f"{server.url}/maps/{meta['id']}/files/secrets.txt").status_code == 404
+    assert httpx.get(f"{server.url}/maps/0000000000000000").status_code == 404
+    assert httpx.get(f"{server.url}/maps/not-an-id").status_code == 422
+
+
+def test_upload__plain_image_with_its_resolution(server):
+    img = room_picture()
+    r = upload(server.url, [("room.png", png(img))], resolution=RES)
+    assert r.status_code == 201, r.text
+    meta = r.json()
+    assert meta["resolution"] == RES and meta["name"] == "room"
+    # a negated picture of the same room, said to be negated, is the same occupancy
+    neg = upload(server.url, [("neg.png", png(255 - img))], resolution=RES, negate="true")
+    assert neg.status_code == 201
+    assert neg.json()["free_fraction"] == meta["free_fraction"]
+    assert neg.json()["id"] != meta["id"]  # other files, another map
+
+
+BAD = {
+    "no image": ([("room.yaml", yaml_for())], "files", "0 image file"),
+    "two images": ([("a.png", png(room_picture())), ("b.png", png(room_picture()))], "files", "2 image file"),
+    "yaml names another image": ([("room.yaml", yaml_for("other.pgm")), ("room.pgm", pgm(room_picture()))],
+                                 "files", "names image 'other.pgm'"),
+    "image without resolution": ([("room.png", png(room_picture()))], "resolution", "give its resolution"),
+    "not a picture": ([("room.pgm", b"P5\nthis is not a picture")], "files", "not a PGM or PNG"),
+    "a text file": ([("notes.txt", b"hello")], "files", "neither a map_server .yaml"),
+    "yaml that is not yaml": ([("room.yaml", b"image: [unclosed"), ("room.pgm", pgm(room_picture()))],
+                              "files", "not valid YAML"),
+    "rotated origin": ([("room.yaml", yaml_for(origin="[0, 0, 1.57]")), ("room.pgm", pgm(room_picture()))],
+                       "files", "yaw"),
+    "thresholds out of order": ([("room.yaml", yaml_for(free_thresh=0.9)), ("room.pgm", pgm(room_picture()))],
+                                "files", "free_thresh"),
+    "all occupied": ([("dark.png", png(np.zeros((40, 40), np.uint8)))], "files", "no free pixel"),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("case", list(BAD))
+def test_upload__bad_files_are_refused_naming_the_problem(server, case):
+    files, field, words = BAD[case]
+    form = {"resolution": RES} if case in ("all occupied", "not a picture") else {}
+    r = upload(server.url, files, **form)
+    assert r.status_code == 422, r.text
+    item = r.json()["detail"][0]
+    assert item["loc"] == ["body", field] and words in item["msg"], item
+    assert httpx.get(f"{server.url}/maps").json()["count"] == 0
+
+
+def test_upload__limits_and_form_fields(server):
+    img = room_picture()
+    # a plain-image field with a YAML would be ignored: refused, naming it
+    r = upload(server.url, [("room.yaml", yaml_for()), ("room.pgm", pgm(img))], resolution=0.1)
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "resolution"]
+    r = upload(server.url, [("room.png", png(img))], resolution=-1)
+    assert r.status_code == 422 and "resolution" in r.json()["detail"][0]["loc"]
+    # more pixels than this server takes (max_map_pixels=400,000 here)
+    big = np.full((700, 700), FREE, np.uint8)
+    r = upload(server.url, [("big.png", png(big))], resolution=RES)
+    assert r.status_code == 413 and "QUICKNAV_MAX_MAP_PIXELS" in r.json()["detail"]
+    # the JSON body limit does not apply to uploads, their own does
+    assert r.request.headers["content-length"] and int(r.request.headers["content-length"]) < 1_000_000
+
+
+def test_upload__body_over_the_upload_limit_is_413(tmp_path):
+    with LiveServer(tmp_path, max_map_upload_bytes=50_000) as s:
+        r = upload(s.url, [("room.pgm", pgm(room_picture()) + b"\0" * 60_000)], resolution=RES)
+        assert r.status_code == 413 and "QUICKNAV_MAX_MAP_UPLOAD_BYTES" in r.json()["detail"]
+    set_map_resolver(None)
+
+
+def test_configs_name_maps_by_id__checked_at_submission(server):
+    meta = upload(server.url, [("room.yaml", yaml_for()), ("room.pgm", pgm(room_picture()))]).json()
+
+    def train(**overrides):
+        return httpx.post(f"{server.url}/jobs/train", json={"preset": "demo", "overrides": {
+            **TINY, "env.rooms": "maps", **overrides}})  # fmt: skip
+
+    r = train(**{"env.maps.train": ["examples/maps/office.yaml"]})
+    assert r.status_code == 422
+    item = r.json()["detail"][0]
+    assert item["loc"] == ["body", "overrides", "env.maps.train", 0] and "POST /maps" in item["msg"]
+    r = train(**{"env.maps.train": ["map:0123456789abcdef"]})
+    assert r.status_code == 422 and "no such map on this server" in r.text
+    # the room is 7.6 m: 8 cells of 1 m (room_size 8 / grid_size 8, TINY) and the ring need 10
+    r = train(**{"env.maps.train": [meta["ref"]]})
+    assert r.status_code == 422
+    item = r.json()["detail"][0]
+    assert item["loc"] == ["body", "overrides", "env.maps.train"]
+    assert item["msg"].startswith(meta["ref"]) and "Set grid_size >= 10" in item["msg"]
+    # an eval body and a sweep body are checked the same way
+    r = httpx.post(f"{server.url}/jobs/eval", json={"policy": "oracle", "env": {
+        "rooms": "maps", "maps": {"train": ["/home/me/map.yaml"]}}})  # fmt: skip
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"][:4] == ["body", "env", "maps", "train"]
+
+
+def test_delete__refused_while_a_queued_job_uses_the_map(server):
+    meta = upload(server.url, [("room.yaml", yaml_for()), ("room.pgm", pgm(room_picture()))]).json()
+    r = httpx.post(f"{server.url}/jobs/train", json={"preset": "demo", "overrides": {
+        **TINY, "env.rooms": "maps", "env.maps.train": [meta["ref"]], "env.grid_size": 18,
+        "env.room_size": 9.0}})  # fmt: skip
+    assert r.status_code == 202, r.text
+    job = r.json()
+    assert httpx.get(f"{server.url}/maps/{meta['id']}").json()["used_by"] == [job["id"]]
+    r = httpx.delete(f"{server.url}/maps/{meta['id']}")
+    assert r.status_code == 409 and job["id"] in r.json()["detail"]
+    assert httpx.post(f"{server.url}/jobs/{job['id']}/cancel", json={}).status_code == 200
+    assert httpx.delete(f"{server.url}/maps/{meta['id']}").status_code == 204
+    assert httpx.get(f"{server.url}/maps/{meta['id']}").status_code == 404
+    assert httpx.delete(f"{server.url}/maps/{meta['id']}").status_code == 404
+
+
+def test_train_and_eval_jobs_run_on_an_uploaded_map(server):
+    """The worker reads the map from the store by its id; the eval's replay carries the map."""
+    meta = upload(server.url, [("room.yaml", yaml_for()), ("room.pgm", pgm(room_picture()))]).json()
+    env = {"env.rooms": "maps", "env.maps.train": [meta["ref"]], "env.grid_size": 18,
+           "env.room_size": 9.0}  # fmt: skip
+    r = httpx.post(f"{server.url}/jobs/train", json={"preset": "demo", "overrides": {**TINY, **env}})
+    assert r.status_code == 202, r.text
+    train = r.json()
+    worker = server.worker()
+    worker.run_burst(poll_s=0.05)
+    assert wait_status(server.url, train["id"], {"succeeded", "failed"})["status"] == "succeeded"
+    config = json.loads(httpx.get(f"{server.url}/jobs/{train['id']}/artifacts/config.json").content)
+    assert config["env"]["maps"]["train"] == [meta["ref"]]  # the run names the map by its id
+    r = httpx.post(f"{server.url}/jobs/eval", json={"job_id": train["id"], "episodes": 4})
+    assert r.status_code == 202, r.text
+    ev = r.json()
+    worker.run_burst(poll_s=0.05)
+    assert wait_status(server.url, ev["id"], {"succeeded", "failed"})["status"] == "succeeded"
+    replay = json.loads(httpx.get(f"{server.url}/jobs/{ev['id']}/artifacts/replay.json").content)
+    # where the map's picture lies in the room: its lower-left corner at cell (1, 1)
+    assert replay["maps"] == {meta["ref"]: {"x0": 0.5, "y0": 0.5, "width_m": 7.6, "height_m": 7.6}}
+    assert {e["map"] for e in replay["episodes"]} == {meta["ref"]}
