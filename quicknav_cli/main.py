@@ -7,6 +7,7 @@
     bench     quicknav bench [train | learning]             (bench.py)
     serve     quicknav serve | worker | rollout-server      (serve.py, needs the service extra)
     jobs      quicknav jobs submit | list | show | ...      (jobs.py, talks to a service via the SDK)
+    maps      quicknav maps upload | list | show | delete   (maps.py, the same)
 
 Every command that builds a config sends a request through ``quicknav_core.config.resolve``, the
 same function the service calls, so a flag means the same thing here and in a job.
@@ -19,7 +20,7 @@ from typing import Annotated
 import typer
 from typer.core import TyperGroup
 
-from quicknav_cli import bench, env, export, jobs, serve, sweep, train
+from quicknav_cli import bench, env, export, jobs, maps, serve, sweep, train
 from quicknav_cli import eval as eval_
 from quicknav_cli.common import fail
 
@@ -97,6 +98,7 @@ app.command("serve")(serve.serve)
 app.command("worker")(serve.worker)
 app.command("rollout-server")(serve.rollout_server)
 app.add_typer(jobs.app, name="jobs")
+app.add_typer(maps.app, name="maps")
 
 
 def main() -> None:  # pragma: no cover - console entry point

@@ -211,7 +211,9 @@ class MapLibrary:
 
     def local_yaml(self, map_id: str) -> Path:
         """The stored map's ``map.yaml`` on this machine (MapError naming the id if none)."""
-        folder = self.artifacts.local_folder(f"{MAPS}/{map_id}") if valid_id(map_id) else None
+        # the store says whether it exists (a copy cached here may outlive a delete elsewhere)
+        exists = valid_id(map_id) and self.get(map_id) is not None
+        folder = self.artifacts.local_folder(f"{MAPS}/{map_id}") if exists else None
         if folder is None or not (folder / "meta.json").exists():
             raise MapError(f"{MAP_ID_PREFIX}{map_id}: no such map on this server (GET /maps lists"
                            " them; upload one with POST /maps)")  # fmt: skip

@@ -352,7 +352,7 @@ class S3Artifacts(ArtifactStore):
         return sorted({k[len(base):].split("/", 1)[0] for k, _ in self._keys(base) if "/" in k[len(base):]})
 
     def local_folder(self, folder: str) -> Path | None:
-        target = self.cache.parent / folder
+        target = self.cache / folder  # removed with the folder by delete()
         done = target / ".complete"
         if done.exists():
             return target

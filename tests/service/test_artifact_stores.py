@@ -186,3 +186,27 @@ def test_an_outage_is_an_error_naming_the_store_and_nothing_published_is_lost(s3
     a.save("j", checkpoint_only=True)
     assert b.pointer("j")["chunk"] == 2
     assert POINTER not in {x.name for x in b.list("j")}
+
+
+def test_uploaded_maps_are_stored_once_and_read_on_another_machine(stores):
+    """The map library over either store: a map uploaded through machine A is listed, previewed
+    and read as a map_server pair by machine B (fetched once into B's cache), then deleted."""
+    from quicknav_core.env.maps import MapError, load_map
+    from quicknav_service.maps import MapLibrary, UploadedFile
+    from tests.service.test_maps import pgm, room_picture, yaml_for
+
+    a, b = (MapLibrary(s, max_pixels=1_000_000) for s in stores)
+    files = [UploadedFile("room.yaml", yaml_for()), UploadedFile("room.pgm", pgm(room_picture()))]
+    meta = a.add(files, name="room")
+    assert a.add(files)["id"] == meta["id"]  # the same files: the same map, stored once
+    assert [m["id"] for m in b.list()] == [meta["id"]] and b.get(meta["id"]) == meta
+    assert b.preview(meta["id"])[:8] == b"\x89PNG\r\n\x1a\n"
+    path = b.local_yaml(meta["id"])
+    assert load_map(path).blocked.shape == (152, 152)
+    assert (path.parent / "map.pgm").read_bytes() == pgm(room_picture())
+    a.delete(meta["id"])
+    assert b.list() == [] and b.get(meta["id"]) is None
+    with pytest.raises(MapError, match="no such map"):  # B's cached copy does not outlive it
+        b.local_yaml(meta["id"])
+    with pytest.raises(MapError, match="no such map"):
+        a.local_yaml("0123456789abcdef")

@@ -287,6 +287,36 @@ class AsyncQuickNavClient:
         written whole or not at all; returns its path. ``path`` is the deprecated name of ``out``."""
         return await self._run(core.download(self._policy, job_id, name, core.download_out(out, path)))
 
+    # -- maps
+    async def upload_map(
+        self, path: str | Path, *, name: str | None = None, resolution: float | None = None,
+        negate: bool | None = None, occupied_thresh: float | None = None,
+        free_thresh: float | None = None,
+    ) -> dict:
+        """Upload a building map (see ``QuickNavClient.upload_map``)."""
+        parts = core.map_upload(path, name, resolution, negate, occupied_thresh, free_thresh)
+        return await self._json("POST", "/maps", **parts)
+
+    async def maps(self) -> list[dict]:
+        """Every uploaded map, newest first."""
+        return (await self._get_json("/maps"))["data"]
+
+    async def map(self, ref: str) -> dict:
+        """One map by id or ``map:<id>``."""
+        return await self._get_json(f"/maps/{core.map_id(ref)}")
+
+    async def map_preview(self, ref: str, out: str | Path = "preview.png") -> Path:
+        """The map's picture as a PNG file."""
+        return await self._run(core.save(self._policy, f"/maps/{core.map_id(ref)}/preview.png", Path(out)))
+
+    async def download_map(self, ref: str, dest: str | Path = ".") -> Path:
+        """The stored map_server pair (``map.yaml`` and its image) into ``dest``; the YAML's path."""
+        return await self._run(core.download_map(self._policy, ref, dest))
+
+    async def delete_map(self, ref: str) -> None:
+        """Delete a map (Conflict while a queued or running job uses it)."""
+        await self._json("DELETE", f"/maps/{core.map_id(ref)}")
+
     async def download_policy(self, job_id: str, dest: str | Path = ".") -> Path:
         """Download a train job's exported policy (``policy.onnx`` and its ``policy.json``
         manifest) into the folder ``dest``; returns the folder. A job trained before policies were

@@ -586,10 +586,14 @@ def wait(p: Policy, job: JobFields, progress: bool, timeout: float | None,
 
 def download(p: Policy, job_id: str, name: str, path: str | Path | None) -> Operation:
     """Stream a job's artifact to a file, written whole or not at all; returns its path."""
-    target = download_target(name, path)
+    return (yield from save(p, artifact_path(job_id, name), download_target(name, path)))
+
+
+def save(p: Policy, url_path: str, target: Path) -> Operation:
+    """Stream a GET's body to ``target``, written whole or not at all; returns the path."""
     partial = target.with_name(target.name + ".part")
     for attempt in range(p.retries + 1):
-        response = yield from open_stream(p, artifact_path(job_id, name))
+        response = yield from open_stream(p, url_path)
         try:
             yield SaveBody(response, partial)
         except TRANSIENT as e:
@@ -603,3 +607,51 @@ def download(p: Policy, job_id: str, name: str, path: str | Path | None) -> Oper
         break
     partial.replace(target)
     return target
+
+
+# --------------------------------------------------------------------------- maps
+MAP_IMAGE_SUFFIXES = (".pgm", ".png")
+MAP_FILES = ("map.yaml", "map.pgm", "map.png")  # what a stored map may hold, by name
+
+
+def _yaml_image(yaml_path: Path) -> Path:
+    """The image a map_server YAML names (read without a YAML library: one ``image:`` line)."""
+    for line in yaml_path.read_text().splitlines():
+        key, sep, value = line.partition(":")
+        if sep and key.strip() == "image":
+            name = value.split("#", 1)[0].strip().strip("'\"")
+            return yaml_path.parent / name
+    raise ValueError(f"{yaml_path}: no 'image:' line; a map_server YAML names its image")
+
+
+def map_upload(path: str | Path, name: str | None, resolution: float | None, negate: bool | None,
+               occupied_thresh: float | None, free_thresh: float | None) -> dict[str, Any]:  # fmt: skip
+    """The multipart request of ``POST /maps`` for a map file: a map_server .yaml goes with the
+    image it names; a .png/.pgm alone (then ``resolution`` is needed: the server says so)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such map file")
+    paths = [path, _yaml_image(path)] if path.suffix.lower() in (".yaml", ".yml") else [path]
+    for extra in paths[1:]:
+        if not extra.is_file():
+            raise FileNotFoundError(f"{path} names image {extra.name!r}, which is not at {extra}")
+    form = {"name": name, "resolution": resolution, "occupied_thresh": occupied_thresh,
+            "free_thresh": free_thresh, "negate": None if negate is None else str(bool(negate)).lower()}  # fmt: skip
+    return {"files": [("files", (f.name, f.read_bytes())) for f in paths],
+            "data": {k: str(v) for k, v in form.items() if v is not None}}
+
+
+def map_id(ref: str) -> str:
+    """A map's id from its id or its ``map:<id>`` reference."""
+    return ref.removeprefix("map:")
+
+
+def download_map(p: Policy, ref: str, dest: str | Path) -> Operation:
+    """A stored map's ``map.yaml`` and its image into the folder ``dest``; returns the YAML's path."""
+    folder = Path(dest)
+    folder.mkdir(parents=True, exist_ok=True)
+    meta = yield from request_json(p, "GET", f"/maps/{map_id(ref)}")
+    yaml_path = yield from save(p, f"/maps/{meta['id']}/files/map.yaml", folder / "map.yaml")
+    image = _yaml_image(yaml_path).name
+    yield from save(p, f"/maps/{meta['id']}/files/{image}", folder / image)
+    return yaml_path

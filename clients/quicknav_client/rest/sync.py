@@ -275,6 +275,38 @@ class QuickNavClient:
         written whole or not at all; returns its path. ``path`` is the deprecated name of ``out``."""
         return self._run(core.download(self._policy, job_id, name, core.download_out(out, path)))
 
+    # -- maps
+    def upload_map(
+        self, path: str | Path, *, name: str | None = None, resolution: float | None = None,
+        negate: bool | None = None, occupied_thresh: float | None = None,
+        free_thresh: float | None = None,
+    ) -> dict:
+        """Upload a building map: a map_server ``.yaml`` (its image goes with it) or a ``.png``/
+        ``.pgm`` with ``resolution`` (metres per pixel). Returns the map; name it in an env config
+        as its ``ref`` (``env.maps.train: ["map:<id>"]``). The same files give the same map."""
+        parts = core.map_upload(path, name, resolution, negate, occupied_thresh, free_thresh)
+        return self._json("POST", "/maps", **parts)
+
+    def maps(self) -> list[dict]:
+        """Every uploaded map, newest first."""
+        return self._get_json("/maps")["data"]
+
+    def map(self, ref: str) -> dict:
+        """One map by id or ``map:<id>``: size, resolution, free space, the env that holds it."""
+        return self._get_json(f"/maps/{core.map_id(ref)}")
+
+    def map_preview(self, ref: str, out: str | Path = "preview.png") -> Path:
+        """The map's picture as a PNG file."""
+        return self._run(core.save(self._policy, f"/maps/{core.map_id(ref)}/preview.png", Path(out)))
+
+    def download_map(self, ref: str, dest: str | Path = ".") -> Path:
+        """The stored map_server pair (``map.yaml`` and its image) into ``dest``; the YAML's path."""
+        return self._run(core.download_map(self._policy, ref, dest))
+
+    def delete_map(self, ref: str) -> None:
+        """Delete a map (Conflict while a queued or running job uses it)."""
+        self._json("DELETE", f"/maps/{core.map_id(ref)}")
+
     def download_policy(self, job_id: str, dest: str | Path = ".") -> Path:
         """Download a train job's exported policy (``policy.onnx`` and its ``policy.json``
         manifest) into the folder ``dest``; returns the folder. A job trained before policies were

@@ -537,9 +537,14 @@ function parseValue(text) {
 }
 
 async function submitPage() {
-  const presets = await api("/presets");
+  const [presets, maps] = await Promise.all([api("/presets"), api("/maps")]);
   const names = Object.keys(presets);
   const want = new URLSearchParams(location.search).get("preset");
+  const wantMap = new URLSearchParams(location.search).get("map");
+  const roomsSel = h("select", { name: "rooms", id: "rooms" },
+    h("option", { value: "" }, "the preset's (carved caves unless it says otherwise)"),
+    h("option", { value: "floorplan" }, "generated floor plans"),
+    maps.data.map((m) => h("option", { value: m.id, selected: m.id === wantMap }, `map: ${m.name} (${metres(m.width_m)} × ${metres(m.height_m)})`)));
   const presetSel = h("select", { name: "preset", id: "preset" }, names.map((n) => h("option", { value: n, selected: n === want }, n)));
   const desc = h("p", { class: "muted", id: "preset-description" });
   const general = h("div");
@@ -552,7 +557,9 @@ async function submitPage() {
   const form = h("form", { class: "submit", id: "submit-form", novalidate: true },
     h("div", { class: "field", dataset: { key: "preset" } }, h("label", { for: "preset" }, "Preset"), presetSel,
       h("div", { class: "field-error" })),
-    desc, inputs, extra, general,
+    desc,
+    fieldRow("env.rooms", "Rooms", "where rooms come from: a map sets env.maps.train, and the grid that holds it at 0.5 m cells", roomsSel),
+    inputs, extra, general,
     h("button", { class: "primary", type: "submit", id: "submit" }, "Submit training job"));
   main.replaceChildren(h("h1", {}, "New training job"),
     h("p", { class: "muted" }, "Start from a preset; a field left empty keeps the preset's value (shown greyed)."), form);
@@ -578,6 +585,15 @@ async function submitPage() {
       const v = form.querySelector(`[name="${key}"]`).value;
       if (v.trim() !== "") { overrides[key] = parseValue(v); origin[key] = key; }
     }
+    if (roomsSel.value === "floorplan") { overrides["env.rooms"] = "floorplan"; origin["env.rooms"] = "env.rooms"; }
+    else if (roomsSel.value) {
+      const m = maps.data.find((x) => x.id === roomsSel.value);
+      // the map's suggested grid unless the form sets its own
+      for (const [k, v] of [["env.rooms", "maps"], ["env.maps.train", [m.ref]],
+        ["env.grid_size", m.suggested_env.grid_size], ["env.room_size", m.suggested_env.room_size]]) {
+        if (!(k in overrides)) { overrides[k] = v; origin[k] = "env.rooms"; }
+      }
+    }
     let malformed = false;
     for (const [i, raw] of form.querySelector("[name=overrides]").value.split("\n").entries()) {
       if (!raw.trim()) continue;
@@ -600,6 +616,7 @@ async function submitPage() {
           const loc = (d.loc || []).slice(d.loc[0] === "body" ? 1 : 0);
           let key = loc[0] === "overrides" ? loc[1] : loc.join(".");
           if (origin[key] === "overrides") key = "overrides";
+          else if (origin[key] !== undefined && origin[key] !== key) key = origin[key]; // set by the rooms choice
           else if (origin[key] === undefined && loc[0] === "overrides") {
             // an error inside a value (e.g. a list element) names a longer path: find its field
             const hit = Object.keys(origin).find((k) => String(loc[1]).startsWith(k));
@@ -625,6 +642,87 @@ async function submitPage() {
   }
 }
 
+// ------------------------------------------------------------------ maps
+/** POST a form with files (multipart); errors as api() gives them. */
+async function upload(path, formData) {
+  const resp = await fetch(path, { method: "POST", body: formData, credentials: "same-origin",
+    headers: { Accept: "application/json", "X-QuickNav-Web": "1" } });
+  const text = await resp.text();
+  let data = null;
+  try { data = text ? JSON.parse(text) : null; } catch { data = text; }
+  if (!resp.ok) {
+    if (resp.status === 401) showLogin();
+    throw new ApiError(resp.status, data && data.detail !== undefined ? data.detail : data);
+  }
+  return data;
+}
+
+const metres = (x) => `${Number(x.toFixed(2))} m`;
+
+function mapCard(m, refresh) {
+  const status = h("div", { class: "field-error" });
+  const del = h("button", { class: "danger", onclick: async () => {
+    if (!confirm(`Delete map ${m.name}?`)) return;
+    try { await api(`/maps/${m.id}`, { method: "DELETE" }); refresh(); } catch (e) { status.textContent = describe(e); }
+  } }, "Delete");
+  return h("figure", { class: "map-card", dataset: { map: m.id } },
+    h("img", { src: m.preview_url, alt: `map ${m.name}` }),
+    h("figcaption", {},
+      h("strong", {}, m.name), " ", h("span", { class: "mono muted" }, m.ref), h("br"),
+      `${m.width_px} × ${m.height_px} px at ${m.resolution} m: ${metres(m.width_m)} × ${metres(m.height_m)}, `
+        + `free ${Math.round(100 * m.free_fraction)} %, unknown ${Math.round(100 * m.unknown_fraction)} %`, h("br"),
+      m.used_by.length ? h("span", {}, "in use by ", m.used_by.map((j) => h("a", { href: `/ui/jobs/${j}`, class: "mono" }, short(j), " "))) : null,
+      h("div", { class: "controls" },
+        h("a", { href: `/ui/submit?map=${m.id}` }, h("button", { class: "primary" }, "Train on this map")), del),
+      status));
+}
+
+async function mapsPage() {
+  const list = h("div", { class: "images", id: "maps" });
+  const files = h("input", { type: "file", id: "map-files", name: "files", multiple: true, accept: ".yaml,.yml,.pgm,.png" });
+  const name = h("input", { id: "map-name", name: "name", autocomplete: "off", placeholder: "the image's name" });
+  const resolution = h("input", { id: "map-resolution", name: "resolution", inputmode: "decimal", placeholder: "a .yaml names its own" });
+  const negate = h("input", { type: "checkbox", id: "map-negate", name: "negate" });
+  const errors = h("div", { id: "map-errors" });
+  const field = (id, label, help, control) => h("div", { class: "field" },
+    h("label", { for: id }, label, h("small", {}, help)), control);
+  const form = h("form", { class: "submit", id: "map-form", novalidate: true },
+    field("map-files", "Map files", "a ROS map_server .yaml with its .pgm, or one .png/.pgm image", files),
+    field("map-name", "Name", "a label", name),
+    field("map-resolution", "Resolution", "metres per pixel: plain images only", resolution),
+    field("map-negate", "Negate", "plain images: white is occupied", negate),
+    errors, h("button", { class: "primary", type: "submit", id: "upload" }, "Upload map"));
+  const refresh = async () => {
+    const maps = await api("/maps");
+    fill(list, maps.count ? maps.data.map((m) => mapCard(m, refresh))
+      : h("p", { class: "muted" }, "No maps yet: upload one above."));
+  };
+  form.addEventListener("submit", async (ev) => {
+    ev.preventDefault();
+    errors.replaceChildren();
+    const data = new FormData();
+    for (const f of files.files) data.append("files", f, f.name);
+    if (name.value.trim()) data.append("name", name.value.trim());
+    if (resolution.value.trim()) data.append("resolution", resolution.value.trim());
+    if (negate.checked) data.append("negate", "true");
+    const button = form.querySelector("#upload");
+    button.disabled = true;
+    try {
+      const m = await upload("/maps", data);
+      form.reset();
+      await refresh();
+      errors.append(h("p", { class: "note-box", id: "map-uploaded" }, `Stored map ${m.name} as ${m.ref}.`));
+    } catch (e) {
+      const items = e.status === 422 && Array.isArray(e.detail) ? e.detail.map((d) => `${(d.loc || []).slice(1).join(".")}: ${d.msg}`) : [describe(e)];
+      for (const msg of items) errors.append(h("div", { class: "error-box", role: "alert" }, msg));
+    } finally { button.disabled = false; }
+  });
+  main.replaceChildren(h("h1", {}, "Maps"),
+    h("p", { class: "muted" }, "Maps of your buildings, to train and evaluate on. A config names one as map:<id> in env.maps.train."),
+    form, h("h2", {}, "Uploaded maps"), list);
+  await refresh();
+}
+
 // ------------------------------------------------------------------ replay
 function drawFrame(canvas, data, ep, t) {
   const ctx = canvas.getContext("2d");
@@ -636,10 +734,23 @@ function drawFrame(canvas, data, ep, t) {
   const cell = size / g;
   ctx.fillStyle = "#f4f1ea";
   ctx.fillRect(0, 0, size, size);
+  // an uploaded map: its own picture where it lies in the room, the grid's walls over it, lighter
+  const place = ep.map && data.maps && data.maps[ep.map];
+  const picture = place && data.pictures && data.pictures[ep.map];
   ctx.fillStyle = "#3b3b3b";
+  if (picture) {
+    ctx.fillStyle = "#3b3b3b";
+    ctx.fillRect(0, 0, size, size);
+    ctx.imageSmoothingEnabled = false;
+    ctx.drawImage(picture, px(place.x0), py(place.y0 + place.height_m), px(place.width_m), px(place.height_m));
+    ctx.fillStyle = "rgba(59,59,59,0.35)";
+  }
+  // one path filled once: translucent cells do not darken where they overlap
+  ctx.beginPath();
   ep.walls.forEach((row, r) => {
-    for (let c = 0; c < row.length; c++) if (row[c] === "#") ctx.fillRect(c * cell, size - (r + 1) * cell, cell + 0.5, cell + 0.5);
+    for (let c = 0; c < row.length; c++) if (row[c] === "#") ctx.rect(c * cell, size - (r + 1) * cell, cell + 0.5, cell + 0.5);
   });
+  ctx.fill("nonzero");
   // goal disc
   ctx.fillStyle = "rgba(44,160,44,0.35)";
   ctx.beginPath(); ctx.arc(px(ep.goal[0]), py(ep.goal[1]), px(data.goal_radius), 0, 2 * Math.PI); ctx.fill();
@@ -701,9 +812,24 @@ function player(data, into) {
   show(); schedule();
 }
 
+/** The pictures of the uploaded maps a replay drove in (map:<id> -> a bitmap); a map deleted since
+    (or a map file read by the CLI) is drawn from the grid alone. */
+async function mapPictures(data) {
+  const out = {};
+  for (const ref of Object.keys(data.maps || {})) {
+    if (!ref.startsWith("map:")) continue;
+    try {
+      const resp = await fetch(`/maps/${ref.slice(4)}/preview.png`, { credentials: "same-origin" });
+      if (resp.ok) out[ref] = await createImageBitmap(await resp.blob());
+    } catch { /* drawn without it */ }
+  }
+  return out;
+}
+
 async function replayOf(evalJob, into) {
   try {
     const data = await api(`/jobs/${evalJob.id}/artifacts/replay.json`);
+    data.pictures = await mapPictures(data);
     player(data, into);
     const where = evalJob.config.split === "test" ? "held-out test rooms" : "training rooms";
     into.prepend(h("p", { class: "muted", id: "replay-source" }, `Episodes of eval job `,
@@ -791,7 +917,7 @@ async function route() {
   // a replay of a job is under /ui/jobs/ but belongs to Replay; links without data-nav (API
   // docs) are never the current page (toggle with an undefined force would flip them on)
   const current = /^\/ui\/jobs\/[^/]+\/replay\/?$/.test(path) || path.startsWith("/ui/replay") ? "replay"
-    : path.startsWith("/ui/submit") ? "submit" : path === "/" || path.startsWith("/ui/jobs") || path === "/ui/" ? "jobs" : null;
+    : path.startsWith("/ui/submit") ? "submit" : path.startsWith("/ui/maps") ? "maps" : path === "/" || path.startsWith("/ui/jobs") || path === "/ui/" ? "jobs" : null;
   for (const a of document.querySelectorAll("header nav a")) {
     const on = Boolean(a.dataset.nav) && a.dataset.nav === current;
     a.classList.toggle("active", on);
@@ -804,6 +930,7 @@ async function route() {
     else if ((m = path.match(/^\/ui\/jobs\/([^/]+)\/?$/))) await jobPage(decodeURIComponent(m[1]));
     else if (path.startsWith("/ui/submit")) await submitPage();
     else if (path.startsWith("/ui/replay")) await replayIndex();
+    else if (path.startsWith("/ui/maps")) await mapsPage();
     else main.replaceChildren(h("h1", {}, "Not found"), h("a", { href: "/" }, "All jobs"));
   } catch (e) {
     if (!(e instanceof ApiError && e.status === 401)) main.replaceChildren(h("div", { class: "error-box" }, e instanceof ApiError ? describe(e) : String(e)));

@@ -1,0 +1,109 @@
+"""A building map's journey in a real browser (headless Chromium against a live `quicknav serve`):
+upload a map_server map on the Maps page, see its preview, train the demo preset on it from the
+submit form, evaluate the trained policy on the map (held-out episodes: a policy that learned), and
+watch the replay drawn on the map's own picture. Bad files are refused on the page with the
+server's reason."""
+
+from __future__ import annotations
+
+import httpx
+import pytest
+
+from tests.service.test_maps import RES, pgm, room_picture, yaml_for
+from tests.service.test_web_browser import (  # noqa: F401 (fixtures)
+    AUTH,
+    JOB_TIMEOUT_MS,
+    TOKEN,
+    data_dir,
+    page,
+    server,
+    shots,
+    success_in_table,
+)
+
+
+@pytest.fixture(scope="module")
+def map_files(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("map")
+    (folder / "room.yaml").write_bytes(yaml_for())
+    (folder / "room.pgm").write_bytes(pgm(room_picture()))
+    (folder / "broken.yaml").write_bytes(yaml_for("room.pgm", origin="[0, 0, 0.5]"))
+    return folder
+
+
+def canvas_pixel(page, x_m: float, y_m: float) -> list[int]:
+    """The replay canvas's RGB at a point of the room (metres, y up)."""
+    return page.evaluate(
+        """([x, y]) => { const c = document.getElementById("replay-canvas");
+        const s = c.width / 9.0;  // room_size 9 m (the map's suggested env)
+        const d = c.getContext("2d").getImageData(Math.round(x * s), Math.round(c.height - y * s), 1, 1).data;
+        return [d[0], d[1], d[2]]; }""", [x_m, y_m])  # fmt: skip
+
+
+def test_browser__upload_a_map_train_on_it_evaluate_and_replay_on_its_picture(server, page, shots, map_files):
+    page.goto(f"{server}/ui/maps")
+    page.wait_for_selector("#login")
+    page.fill("input[name=token]", TOKEN)
+    page.click("#login button[type=submit]")
+    page.wait_for_selector("#map-form")
+    assert page.locator("header nav a.active").all_inner_texts() == ["Maps"]
+    # a map the env cannot lay on its grid is refused with the server's reason, nothing stored
+    page.set_input_files("#map-files", [map_files / "broken.yaml", map_files / "room.pgm"])
+    page.click("#upload")
+    page.wait_for_selector("#map-errors .error-box")
+    assert "yaw" in page.inner_text("#map-errors")
+    assert httpx.get(f"{server}/maps", headers=AUTH).json()["count"] == 0
+
+    page.set_input_files("#map-files", [map_files / "room.yaml", map_files / "room.pgm"])
+    page.fill("#map-name", "test room")
+    page.click("#upload")
+    page.wait_for_selector("#map-uploaded")
+    stored = httpx.get(f"{server}/maps", headers=AUTH).json()["data"]
+    assert [m["name"] for m in stored] == ["test room"]
+    m = stored[0]
+    card = page.locator(f'figure[data-map="{m["id"]}"]')
+    card.locator("img").wait_for()
+    assert card.locator("img").evaluate("img => img.complete && img.naturalWidth") == 152
+    page.screenshot(path=shots / "maps.png", full_page=True)
+
+    # train on it from the submit form: the map is chosen, its grid comes with it
+    card.locator("text=Train on this map").click()
+    page.wait_for_selector("#submit-form")
+    assert page.input_value("#rooms") == m["id"]
+    page.click("#submit")
+    page.wait_for_url(lambda url: "/ui/jobs/" in url, timeout=20_000)
+    job_id = page.url.rsplit("/", 1)[-1]
+    job = httpx.get(f"{server}/jobs/{job_id}", headers=AUTH).json()
+    env = job["config"]["env"]
+    assert (env["rooms"], env["maps"]["train"], env["grid_size"], env["room_size"]) == (
+        "maps", [m["ref"]], 18, 9.0)  # fmt: skip
+    page.wait_for_selector('#job-head .badge[data-status="succeeded"]', timeout=JOB_TIMEOUT_MS)
+
+    # evaluate it on the map: held-out episodes (starts and goals no training episode drew)
+    page.wait_for_selector("#run-eval")
+    page.fill("#eval-episodes", "100")
+    page.click("#run-eval")
+    page.wait_for_url(lambda url: "/ui/jobs/" in url and job_id not in url, timeout=20_000)
+    eval_id = page.url.rsplit("/", 1)[-1]
+    page.wait_for_selector('#job-head .badge[data-status="succeeded"]', timeout=JOB_TIMEOUT_MS)
+    page.wait_for_selector("#eval-metrics")
+    shown = success_in_table(page)
+    assert shown >= 0.8, f"the policy did not learn to drive in the map: held-out success {shown}"
+    ev = httpx.get(f"{server}/jobs/{eval_id}", headers=AUTH).json()
+    assert ev["config"]["env"]["maps"]["train"] == [m["ref"]] and ev["warnings"] == []
+
+    # the replay: the map's picture under the grid's walls
+    page.click("#replay-link")
+    canvas = page.locator("#replay-canvas")
+    canvas.wait_for(timeout=20_000)
+    page.wait_for_timeout(300)
+    # (0.6 m, 4 m): the map's unknown margin (grey 190 in the picture) in a wall cell of the grid,
+    # drawn 35 % dark over the picture; without the picture a wall cell is #3b3b3b (59)
+    r, g, b = canvas_pixel(page, 0.6, 4.0)
+    assert 120 <= r <= 170 and r == g == b, (r, g, b)
+    # (4.3 m, 2 m): free floor in the picture and in the grid: the floor colour
+    assert canvas_pixel(page, 4.3, 2.0) == [244, 241, 234]
+    page.screenshot(path=shots / "map-replay.png", full_page=True)
+
+    # the map is in use while a job that names it waits; a finished job does not hold it
+    assert httpx.delete(f"{server}/maps/{m['id']}", headers={**AUTH}).status_code == 204
