@@ -104,7 +104,7 @@ def _compiled(env, num_envs: int, sharding):
 
 def env_and_params(config: EnvConfig, split: Split):
     """The env and its params for a config and split (room banks built once per config)."""
-    key = (config, split)
+    key = (config.model_dump_json(), split)  # a config with maps holds lists: not hashable
     if key in _PARAMS:
         return _PARAMS[key]
     # streams that start the same config at once wait for one build instead of each carving

@@ -12,7 +12,8 @@ belong to a journey and runs their lines one by one, as they are written, with t
   it (``QUICKNAV_PORT``, ``QUICKNAV_GRPC_PORT``, ``QUICKNAV_DATA_DIR``); ``localhost:8000`` in a
   command becomes that address, and the ``quicknav jobs`` commands find it through ``QUICKNAV_URL``.
 - ``<id>`` is the job id the command before printed, cut to its first 8 characters (the short id
-  a user copies); ``<run-dir>`` is the run folder ``quicknav train`` printed.
+  a user copies); ``<run-dir>`` is the run folder ``quicknav train`` printed; ``<map-id>`` the map
+  id ``quicknav maps upload`` printed.
 - a ``curl`` line gets ``-w`` with the HTTP status appended, so that each one is checked for it.
 - a ``python`` block runs as a script (``uv run python -``), with ``127.0.0.1:8000`` and
   ``127.0.0.1:50051`` turned into the service's HTTP and gRPC addresses.
@@ -37,6 +38,7 @@ ROOT = Path(__file__).resolve().parents[2]
 MARKER = re.compile(r"<!--\s*journey:\s*(?P<name>[\w-]+)\s*-->\s*\Z")
 JOB_ID = re.compile(r"\b[0-9a-f]{32}\b")
 RUN_DIR = re.compile(r"run folder: (?P<dir>\S+)")
+MAP_ID = re.compile(r"^map (?P<id>[0-9a-f]{16}) ", re.M)
 STATUS = re.compile(r"\[http (?P<code>\d{3})\]\s*\Z")
 
 
@@ -129,6 +131,7 @@ class Runner:
     timeout_s: float = 600.0
     last_id: str | None = None
     run_dir: str | None = None
+    map_id: str | None = None
     history: list[Ran] = field(default_factory=list)
     server: subprocess.Popen | None = None
 
@@ -148,6 +151,9 @@ class Runner:
         if "<id>" in command:
             assert self.last_id, f"{command!r} needs a job id, and no command before printed one"
             command = command.replace("<id>", self.last_id[:8])
+        if "<map-id>" in command:
+            assert self.map_id, f"{command!r} needs a map id, and no upload printed one"
+            command = command.replace("<map-id>", self.map_id)
         if "<run-dir>" in command:
             assert self.run_dir, f"{command!r} needs a run folder, and no train printed one"
             command = command.replace("<run-dir>", shlex.quote(self.run_dir))
@@ -180,6 +186,8 @@ class Runner:
         found = RUN_DIR.search(done.stdout)
         if found:
             self.run_dir = found["dir"]
+        if uploaded := MAP_ID.search(done.stdout):
+            self.map_id = uploaded["id"]
         return result
 
     def run_python(self, source: str) -> Ran:

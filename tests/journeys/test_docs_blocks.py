@@ -102,26 +102,41 @@ def api(tmp_path_factory):
         job = client.post("/jobs/train", json={"preset": "demo"}).json()["id"]
         client.post(f"/jobs/{job}/cancel", json={})
         yield client, job
+    from quicknav_core.env.maps import set_map_resolver
+
+    set_map_resolver(None)  # the app let this process read its uploaded maps
 
 
 def _curl(api, block: Block, line: str) -> None:
     """Send what a curl line sends to the API: the route must exist, answer the method and accept
     the body's fields (a refusal for the job's state is fine: the cancelled job stands in)."""
     client, job = api
+    if "<map-id>" in line:  # a map the page uploaded before: the shipped office map stands in
+        files = [("files", (p.name, p.read_bytes())) for p in
+                 (ROOT / "examples/maps/office.yaml", ROOT / "examples/maps/office.pgm")]  # fmt: skip
+        line = line.replace("<map-id>", client.post("/maps", files=files).json()["id"])
     words = shlex.split(line.replace("<id>", job), comments=True)
-    method, url, body = "GET", None, None
+    method, url, body, form = "GET", None, None, []
     for i, w in enumerate(words):
         if w == "-X":
             method = words[i + 1]
         elif w in ("-d", "--data", "--data-raw"):
             body = words[i + 1]
             method = "POST" if method == "GET" else method
+        elif w in ("-F", "--form"):  # name=@file (read from the repository) or name=value
+            form.append(words[i + 1].split("=", 1))
+            method = "POST" if method == "GET" else method
         elif "localhost:" in w or w.startswith("http"):
             url = w
     assert url, f"{block.where}: `{line}` has no address"
     path = re.sub(r"^(https?://)?[^/]+", "", url)
-    answer = client.request(method, path, content=body,
-                            headers={"content-type": "application/json"} if body else {})  # fmt: skip
+    if form:
+        files = [(k, (Path(v[1:]).name, (ROOT / v[1:]).read_bytes())) for k, v in form if v.startswith("@")]
+        data = {k: v for k, v in form if not v.startswith("@")}
+        answer = client.request(method, path, files=files, data=data)
+    else:
+        answer = client.request(method, path, content=body,
+                                headers={"content-type": "application/json"} if body else {})  # fmt: skip
     refused = answer.status_code in (400, 405, 422) or (
         answer.status_code == 404 and answer.json().get("detail") == "Not Found")  # fmt: skip
     assert not refused, f"{block.where}: `{line}`: {answer.status_code} {answer.text}"

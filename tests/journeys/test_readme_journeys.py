@@ -20,7 +20,7 @@ import httpx
 import pytest
 
 from quicknav_core.config.resolve import resolve_train
-from tests.journeys.readme import Runner, doc_files, http_status, journey, journey_blocks
+from tests.journeys.readme import ROOT, Runner, doc_files, http_status, journey, journey_blocks
 from tests.service.conftest import free_port
 
 JOURNEYS = ("quickstart", "in-process")
@@ -244,5 +244,24 @@ def test_journey__the_service_pages_curl_sdk_and_grpc(runner):
 
     (grpc,) = walk(runner, "grpc")
     assert grpc[2].code == 0, str(grpc[2])
+    log = runner.stop()
+    assert "Traceback" not in log, log[-4000:]
+
+
+def test_journey__the_service_pages_maps(runner):
+    """docs/service.md's maps journey: upload the shipped office map, list it, draw it, and run the
+    oracle on it as an eval job (every goal reached: the map's rooms are connected and drivable)."""
+    (runner.workdir / "examples").symlink_to(ROOT / "examples")  # the page's paths, from a checkout
+    runner.start_server("uv run quicknav serve")
+    ran = walk(runner, "maps")
+    for _, _, result in ran:
+        ok(result)
+    upload, listed, shown, evaluated = (r[2] for r in ran)
+    assert upload.stdout.startswith(f"map {runner.map_id} (office):"), str(upload)
+    assert runner.map_id in listed.stdout and "office" in listed.stdout, str(listed)
+    assert (runner.workdir / "office.png").read_bytes()[:4] == b"\x89PNG", str(shown)
+    job = httpx.get(f"{runner.url}/jobs/{runner.last_id}").json()
+    assert job["status"] == "succeeded" and job["config"]["env"]["maps"]["train"] == [f"map:{runner.map_id}"]
+    assert job["result"]["metrics"]["success_rate"] == 1.0, job["result"]["metrics"]
     log = runner.stop()
     assert "Traceback" not in log, log[-4000:]

@@ -46,7 +46,7 @@ def test_limits__an_env_within_them_passes(service):
     assert check_env(EnvConfig(grid_size=32, room_size=16, lidar_beams=64), settings, lambda f: [f]) == []
 
 
-def test_limits__floor_plans_run_through_the_service_and_local_map_files_are_refused(service):
+def test_limits__floor_plans_run_through_the_service_and_map_files_on_the_clients_disk_are_refused(service):
     settings, jobs = service
     job = jobs.submit_train(TrainJobCreate(preset="demo", overrides={"env.rooms": "floorplan"}))
     assert job.config["env"]["rooms"] == "floorplan"
@@ -55,7 +55,7 @@ def test_limits__floor_plans_run_through_the_service_and_local_map_files_are_ref
             "env.rooms": "maps", "env.maps": {"train": ["examples/maps/office.yaml"]},
             "env.grid_size": 32, "env.room_size": 16}))  # fmt: skip
     [item] = refused.value.items
-    assert item["loc"] == ["overrides", "env.rooms"] and "quicknav train" in item["msg"]
-    with pytest.raises(Refused, match="rooms='maps'"):
+    assert item["loc"] == ["overrides", "env.maps", "train", 0] and "POST /maps" in item["msg"]
+    with pytest.raises(Refused, match="is a file on your disk"):
         parse_env_config(pb.Start(config_json=json.dumps(
             {"rooms": "maps", "maps": {"train": ["x.yaml"]}})), settings)  # fmt: skip

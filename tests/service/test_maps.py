@@ -241,3 +241,41 @@ def test_train_and_eval_jobs_run_on_an_uploaded_map(server):
     # where the map's picture lies in the room: its lower-left corner at cell (1, 1)
     assert replay["maps"] == {meta["ref"]: {"x0": 0.5, "y0": 0.5, "width_m": 7.6, "height_m": 7.6}}
     assert {e["map"] for e in replay["episodes"]} == {meta["ref"]}
+
+
+def test_rollout_start_on_an_uploaded_map_steps_as_the_env_on_the_file(tmp_path):
+    """A gRPC Start naming map:<id> runs the rooms the same map gives as a file on disk."""
+    import jax
+    import jax.numpy as jnp
+    from quicknav_client.rollout import RolloutClient, RolloutError
+
+    from quicknav_core.config import EnvConfig
+    from quicknav_core.env.batch import env_and_params
+    from quicknav_service.maps import UploadedFile, library
+    from quicknav_service.rollout.server import BackgroundServer
+    from quicknav_service.settings import Settings
+
+    settings = Settings(data_dir=tmp_path / "data", host="127.0.0.1", grpc_port=0, max_envs=16)
+    meta = library(settings).add([UploadedFile("room.yaml", yaml_for()),
+                                  UploadedFile("room.pgm", pgm(room_picture()))])  # fmt: skip
+    (tmp_path / "room.yaml").write_bytes(yaml_for())
+    (tmp_path / "room.pgm").write_bytes(pgm(room_picture()))
+    base = {"rooms": "maps", "grid_size": 18, "room_size": 9.0, "train_rooms": 4, "test_rooms": 4,
+            "lidar_beams": 8, "max_steps": 50}  # fmt: skip
+    srv = BackgroundServer(settings, port=0).start()
+    try:
+        with RolloutClient(f"127.0.0.1:{srv.port}") as rc:
+            started = rc.start(num_envs=4, seed=3, config={**base, "maps": {"train": [meta["ref"]]}})
+            assert started.env_config["maps"]["train"] == [meta["ref"]]
+            env, params = env_and_params(EnvConfig(**base, maps={"train": [str(tmp_path / "room.yaml")]}), "train")
+            _, sub, _ = jax.random.split(jax.random.PRNGKey(3), 3)
+            obs, _ = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(sub, 4), params)
+            np.testing.assert_allclose(started.observations, np.asarray(obs), rtol=1e-4, atol=1e-5)
+            rc.step(np.zeros((4, 2), np.float32))
+            rc.close()
+        with RolloutClient(f"127.0.0.1:{srv.port}") as rc, pytest.raises(RolloutError, match="POST /maps"):
+            rc.start(num_envs=4, seed=3, config={**base, "maps": {"train": ["/home/me/room.yaml"]}})
+        del jnp
+    finally:
+        srv.stop()
+        set_map_resolver(None)

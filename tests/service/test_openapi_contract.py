@@ -83,7 +83,8 @@ def test_openapi__documents_every_route(api_schema):
         "GET /jobs/{job_id}/metrics", "GET /jobs/{job_id}/artifacts",
         "GET /jobs/{job_id}/artifacts/{name}", "GET /healthz", "GET /readyz",
         "GET /rollout/endpoints", "GET /presets", "GET /metrics", "GET /auth/session",
-        "POST /auth/session", "DELETE /auth/session",
+        "POST /auth/session", "DELETE /auth/session", "POST /maps", "GET /maps", "GET /maps/{map_id}",
+        "GET /maps/{map_id}/preview.png", "GET /maps/{map_id}/files/{name}", "DELETE /maps/{map_id}",
     }  # fmt: skip
 
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import httpx
 import pytest
 
-from tests.service.test_maps import RES, pgm, room_picture, yaml_for
+from tests.service.test_maps import pgm, room_picture, yaml_for
 from tests.service.test_web_browser import (  # noqa: F401 (fixtures)
     AUTH,
     JOB_TIMEOUT_MS,
@@ -31,7 +31,7 @@ def map_files(tmp_path_factory):
     return folder
 
 
-def canvas_pixel(page, x_m: float, y_m: float) -> list[int]:
+def canvas_pixel(page, x_m: float, y_m: float) -> list[int]:  # noqa: F811 (the fixture)
     """The replay canvas's RGB at a point of the room (metres, y up)."""
     return page.evaluate(
         """([x, y]) => { const c = document.getElementById("replay-canvas");
@@ -40,7 +40,10 @@ def canvas_pixel(page, x_m: float, y_m: float) -> list[int]:
         return [d[0], d[1], d[2]]; }""", [x_m, y_m])  # fmt: skip
 
 
-def test_browser__upload_a_map_train_on_it_evaluate_and_replay_on_its_picture(server, page, shots, map_files):
+@pytest.mark.slow  # trains the demo preset to success on the map
+def test_browser__upload_a_map_train_on_it_evaluate_and_replay_on_its_picture(
+    server, page, shots, map_files  # noqa: F811 (fixtures of test_web_browser)
+):
     page.goto(f"{server}/ui/maps")
     page.wait_for_selector("#login")
     page.fill("input[name=token]", TOKEN)

@@ -109,8 +109,12 @@ def get_map(map_id: MapId, library: LibraryDep, jobs: JobsDep) -> MapPublic:
     return _public(_meta(library, map_id), _active_use(jobs))
 
 
+BINARY = {"schema": {"type": "string", "format": "binary"}}
+
+
 @router.get("/{map_id}/preview.png", response_class=Response, responses={
-    200: {"content": {"image/png": {"schema": {"type": "string", "format": "binary"}}},
+    # octet-stream first: generated clients read it as bytes (they know no image types)
+    200: {"content": {"application/octet-stream": BINARY, "image/png": BINARY},
           "description": "the map as a picture: free light, unknown grey, occupied dark"},
     **responses(404, 422)})  # fmt: skip
 def map_preview(map_id: MapId, library: LibraryDep) -> Response:
@@ -123,7 +127,7 @@ def map_preview(map_id: MapId, library: LibraryDep) -> Response:
 
 
 @router.get("/{map_id}/files/{name}", response_class=Response, responses={
-    200: {"content": {t: {"schema": {"type": "string", "format": "binary"}} for t in FILES.values()},
+    200: {"content": {"application/octet-stream": BINARY, **{t: BINARY for t in FILES.values()}},
           "description": "one stored map file"},
     **responses(404, 422)})  # fmt: skip
 def map_file(map_id: MapId, name: str, library: LibraryDep, jobs: JobsDep) -> Response:
