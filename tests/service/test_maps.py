@@ -279,3 +279,80 @@ def test_rollout_start_on_an_uploaded_map_steps_as_the_env_on_the_file(tmp_path)
     finally:
         srv.stop()
         set_map_resolver(None)
+
+
+def _write_map(folder) -> None:
+    (folder / "room.yaml").write_bytes(yaml_for())
+    (folder / "room.pgm").write_bytes(pgm(room_picture()))
+
+
+def test_sdk__upload_list_preview_download_delete(server, tmp_path):
+    from quicknav_client import BadRequest, Conflict, NotFound, QuickNavClient
+
+    _write_map(tmp_path)
+    with QuickNavClient(server.url) as qn:
+        m = qn.upload_map(tmp_path / "room.yaml", name="room")  # the .pgm it names goes with it
+        assert m["ref"] == f"map:{m['id']}" and m["files"] == ["room.yaml", "room.pgm"]
+        assert [x["id"] for x in qn.maps()] == [m["id"]] and qn.map(m["ref"])["name"] == "room"
+        png_path = qn.map_preview(m["id"], tmp_path / "p.png")
+        assert Image.open(png_path).size == (152, 152)
+        got = qn.download_map(m["ref"], tmp_path / "back")
+        assert got == tmp_path / "back" / "map.yaml" and (tmp_path / "back" / "map.pgm").read_bytes() == pgm(room_picture())
+        assert np.array_equal(load_map(got).blocked, load_map(tmp_path / "room.yaml").blocked)
+        with pytest.raises(BadRequest, match="give its resolution"):
+            qn.upload_map(tmp_path / "back" / "map.pgm")
+        with pytest.raises(FileNotFoundError, match="no such map file"):
+            qn.upload_map(tmp_path / "missing.yaml")
+        job = qn.train(preset="demo", overrides={**TINY, "env.rooms": "maps", "env.maps.train": [m["ref"]],
+                                                 "env.grid_size": 18, "env.room_size": 9.0})  # fmt: skip
+        with pytest.raises(Conflict, match=job.id):
+            qn.delete_map(m["id"])
+        job.cancel()
+        qn.delete_map(m["id"])
+        with pytest.raises(NotFound):
+            qn.map(m["id"])
+
+
+def test_sdk__async_client_uploads_and_lists(server, tmp_path):
+    import asyncio
+
+    from quicknav_client import AsyncQuickNavClient
+
+    _write_map(tmp_path)
+
+    async def go():
+        async with AsyncQuickNavClient(server.url) as qn:
+            m = await qn.upload_map(tmp_path / "room.pgm", resolution=RES)
+            assert [x["id"] for x in await qn.maps()] == [m["id"]]
+            assert (await qn.download_map(m["id"], tmp_path / "back")).name == "map.yaml"
+            await qn.delete_map(m["ref"])
+            return await qn.maps()
+
+    assert asyncio.run(go()) == []
+
+
+def test_cli__maps_upload_list_show_delete(server, tmp_path):
+    from typer.testing import CliRunner
+
+    from quicknav_cli.main import app
+
+    _write_map(tmp_path)
+    cli = CliRunner()
+    url = ["maps", "--url", server.url]
+    up = cli.invoke(app, [*url, "upload", str(tmp_path / "room.yaml"), "--name", "my room"])
+    assert up.exit_code == 0, up.output
+    map_id = up.output.split()[1]
+    assert up.output.startswith(f"map {map_id} (my room): 152 x 152 pixels at 0.05 m, 7.6 m x 7.6 m")
+    assert f"--set env.maps.train='[\"map:{map_id}\"]' --set env.grid_size=18 --set env.room_size=9" in up.output
+    listed = cli.invoke(app, [*url, "list"])
+    assert listed.exit_code == 0 and map_id in listed.output and "my room" in listed.output
+    shown = cli.invoke(app, [*url, "show", map_id, "--preview", str(tmp_path / "p.png"),
+                             "--download", str(tmp_path / "dl")])  # fmt: skip
+    assert shown.exit_code == 0, shown.output
+    assert (tmp_path / "p.png").is_file() and (tmp_path / "dl" / "map.pgm").is_file()
+    bad = cli.invoke(app, [*url, "upload", str(tmp_path / "room.pgm")])
+    assert bad.exit_code == 1 and "give its resolution" in bad.output
+    gone = cli.invoke(app, [*url, "delete", f"map:{map_id}"])
+    assert gone.exit_code == 0 and f"deleted map {map_id}" in gone.output
+    missing = cli.invoke(app, [*url, "show", map_id])
+    assert missing.exit_code == 1 and "no map" in missing.output
