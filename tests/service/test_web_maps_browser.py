@@ -106,6 +106,11 @@ def test_browser__upload_a_map_train_on_it_evaluate_and_replay_on_its_picture(
     assert 120 <= r <= 170 and r == g == b, (r, g, b)
     # (4.3 m, 2 m): free floor in the picture and in the grid: the floor colour
     assert canvas_pixel(page, 4.3, 2.0) == [244, 241, 234]
+    # a successful episode, halfway, for the picture
+    options = page.locator("#episode option").all_inner_texts()
+    page.select_option("#episode", index=next(i for i, t in enumerate(options) if "reached" in t))
+    page.click("#play")  # pause
+    page.locator("#step-slider").fill(str(int(page.get_attribute("#step-slider", "max")) // 2))
     page.screenshot(path=shots / "map-replay.png", full_page=True)
 
     # the map is in use while a job that names it waits; a finished job does not hold it
