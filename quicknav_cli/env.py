@@ -115,6 +115,14 @@ def demo(
     if policy not in DEMO_POLICIES:
         fail(f"--policy {policy!r}: allowed values are {', '.join(DEMO_POLICIES)}")
     enable_compilation_cache()
+    from quicknav_core.env.clearance import check_fit
+    from quicknav_core.env.room_sources import check_rooms
+
+    try:
+        check_rooms(cfg)  # a map that cannot be used, a robot that fits in no room: said, not raised
+        check_fit(cfg)
+    except ValueError as e:
+        fail(str(e))
     with console.status("running one episode and drawing it..."):
         result = run_demo(cfg, out, policy=policy, seed=seed)
     outcome = "reached the goal" if result.goal_reached else "timed out"

@@ -104,11 +104,13 @@ def train(
     if print_only:
         print_config(cfg)
         return
+    from quicknav_core.env.clearance import check_fit
     from quicknav_core.env.room_sources import check_rooms
     from quicknav_core.train.trainers import local_devices
 
     try:
         check_rooms(cfg.env)  # a map that cannot be used is refused before anything compiles
+        check_fit(cfg.env)  # so is a robot wider than every room's passages
         devices = local_devices(cfg.devices)
     except ValueError as e:
         fail(str(e))

@@ -18,6 +18,7 @@ import hashlib
 import io
 import json
 import math
+import re
 import tempfile
 import time
 from dataclasses import dataclass
@@ -34,6 +35,7 @@ from quicknav_core.env.maps import (
 from quicknav_service.artifacts import ArtifactStore
 
 MAPS = "maps"  # the artifact store's folder of uploaded maps
+MAP_REF = re.compile(r'"map:([0-9a-f]{16})"')  # a stored map named in a config, as JSON
 ID_LENGTH = 16  # hex digits of the digest that names a map
 SUGGESTED_CELL_M = 0.5  # the env's default cell (room_size 8 m / grid_size 16)
 
@@ -223,11 +225,10 @@ class MapLibrary:
         self.artifacts.delete(f"{MAPS}/{map_id}")
 
 
-def maps_named(env: dict[str, Any] | None) -> set[str]:
-    """The stored map ids an env config (as JSON) names."""
-    maps = (env or {}).get("maps") or {}
-    names = [*(maps.get("train") or []), *(maps.get("test") or [])]
-    return {n[len(MAP_ID_PREFIX):] for n in names if isinstance(n, str) and n.startswith(MAP_ID_PREFIX)}
+def maps_named(config: dict[str, Any] | None) -> set[str]:
+    """The stored map ids a job's config names, wherever its env sits (a train or eval job's
+    ``env``, a sweep's ``base.env``, a trial batch's ``sweep.base.env``)."""
+    return set(MAP_REF.findall(json.dumps(config or {})))
 
 
 def library(settings) -> MapLibrary:

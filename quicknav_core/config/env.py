@@ -325,6 +325,22 @@ class EnvConfig(StrictModel):
         return carving.choose_carver(self.grid_size, self.return_prob, self.carve_target)
 
     @property
+    def spawn_radius(self) -> float:
+        """The widest robot an episode may have: starts and goals are drawn where it fits."""
+        r = self.randomize
+        high = r.robot_radius_m[1] if r is not None and r.robot_radius_m is not None else 0.0
+        return max(self.robot_radius, high)
+
+    @property
+    def collision_reach(self) -> int:
+        """0 for a robot narrower than a cell (the four-cell collision test), else how many cells
+        away the widest robot's disc reaches (``env.clearance.reach_cells``)."""
+        from quicknav_core.env.clearance import narrow, reach_cells
+
+        r, c = self.spawn_radius, self.cell_size
+        return 0 if narrow(r, c) else reach_cells(r, c)
+
+    @property
     def obs_dim(self) -> int:
         """Length of the flat observation vector."""
         return POSE_DIM + 3 * self.lidar_beams + (GOAL_DIM if self.observe_goal else 0)
@@ -332,14 +348,8 @@ class EnvConfig(StrictModel):
     @model_validator(mode="after")
     def _check_geometry(self) -> EnvConfig:
         c = self.cell_size
-        if 2 * self.robot_radius >= c:
-            raise ValueError(
-                f"robot_radius={self.robot_radius} m: the robot (diameter {2 * self.robot_radius:g} m)"
-                f" must be narrower than a one-cell corridor; allowed range 0 < robot_radius"
-                f" < {c / 2:g} m (cell size room_size/grid_size = {c:g} m), or grid_size <="
-                f" {max_grid_for(self.room_size, self.robot_radius)} with room_size={self.room_size:g} m,"
-                f" or room_size > {2 * self.robot_radius * self.grid_size:g} m"
-            )
+        # a robot as wide as a cell or wider is allowed: it starts and drives only where its disc
+        # fits (env.clearance); a bank where it fits nowhere is refused when the bank is built
         step = self.max_wheel_speed * self.dt
         if step > c:
             raise ValueError(
@@ -384,12 +394,6 @@ class EnvConfig(StrictModel):
         if r is None:
             return
         c = self.cell_size
-        if r.robot_radius_m is not None and 2 * r.robot_radius_m[1] >= c:
-            raise ValueError(
-                f"randomize.robot_radius_m=[{r.robot_radius_m[0]:g}, {r.robot_radius_m[1]:g}]: the"
-                f" largest robot must be narrower than a one-cell corridor; allowed range high <"
-                f" {c / 2:g} m (half the cell size room_size/grid_size = {c:g} m)"
-            )
         fastest = self.max_wheel_speed * self.dt * r.wheel_scale_max
         if fastest > c:
             raise ValueError(

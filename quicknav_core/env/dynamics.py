@@ -43,15 +43,19 @@ def _row_word(row_bits: jax.Array, row: jax.Array) -> jax.Array:
 
 
 def disc_overlaps_wall_bits(
-    pos: jax.Array, row_bits: jax.Array, cell: jax.Array | float, radius: jax.Array | float
+    pos: jax.Array, row_bits: jax.Array, cell: jax.Array | float, radius: jax.Array | float,
+    reach: int = 0,
 ) -> jax.Array:
     """Whether a disc at ``pos`` overlaps a wall of a row-packed grid.
 
-    The radius is below half a cell (``EnvConfig`` enforces it), so the disc can only reach its own
-    cell, the neighbour across the nearer vertical side, the neighbour across the nearer horizontal
-    side, and the diagonal cell between those two: four cells, not the whole grid. Touching
-    (distance == radius) is not an overlap.
+    ``reach=0``: the radius is below half a cell, so the disc can only reach its own cell, the
+    neighbour across the nearer vertical side, the neighbour across the nearer horizontal side, and
+    the diagonal cell between those two: four cells, not the whole grid. A wider robot
+    (``reach`` >= 1, ``clearance.reach_cells``: how many cells away its disc can reach) checks the
+    square of cells ``reach`` around its own. Touching (distance == radius) is not an overlap.
     """
+    if reach:
+        return _disc_overlaps_window(pos, row_bits, cell, radius, reach)
     g = row_bits.shape[0]
     rel = pos / cell
     cell_xy = jnp.floor(rel)
@@ -75,11 +79,29 @@ def disc_overlaps_wall_bits(
     )
 
 
+def _disc_overlaps_window(pos, row_bits, cell, radius, reach: int) -> jax.Array:
+    """A disc against every wall cell up to ``reach`` cells from its own (a wide robot)."""
+    g = row_bits.shape[0]
+    col, row = jnp.floor(pos / cell).astype(jnp.int32)
+    hit = jnp.zeros((), bool)
+    for dy in range(-reach, reach + 1):
+        r = row + dy
+        # a row beyond the grid repeats the outer ring: wall, and farther than the ring itself
+        words = _row_word(row_bits, jnp.clip(r, 0, g - 1))
+        gap_y = jnp.maximum(jnp.maximum(r * cell - pos[1], pos[1] - (r + 1) * cell), 0.0)
+        for dx in range(-reach, reach + 1):
+            c = col + dx
+            gap_x = jnp.maximum(jnp.maximum(c * cell - pos[0], pos[0] - (c + 1) * cell), 0.0)
+            hit = hit | (read_bit(words, c) & (gap_x * gap_x + gap_y * gap_y < radius * radius))
+    return hit
+
+
 def disc_overlaps_wall(
-    pos: jax.Array, walls: jax.Array, cell: jax.Array | float, radius: jax.Array | float
+    pos: jax.Array, walls: jax.Array, cell: jax.Array | float, radius: jax.Array | float,
+    reach: int = 0,
 ) -> jax.Array:
     """``disc_overlaps_wall_bits`` for a (g, g) bool wall grid."""
-    return disc_overlaps_wall_bits(pos, pack_rows(jnp.asarray(walls, bool)), cell, radius)
+    return disc_overlaps_wall_bits(pos, pack_rows(jnp.asarray(walls, bool)), cell, radius, reach)
 
 
 def move_with_sliding(
@@ -88,6 +110,7 @@ def move_with_sliding(
     row_bits: jax.Array,
     cell: jax.Array | float,
     radius: jax.Array | float,
+    reach: int = 0,
 ) -> tuple[jax.Array, jax.Array]:
     """Apply a translation; on a wall collision keep the feasible axis of the move, or stay.
 
@@ -97,9 +120,9 @@ def move_with_sliding(
     full = pos + delta
     only_x = pos + jnp.stack([delta[0], 0.0])
     only_y = pos + jnp.stack([0.0, delta[1]])
-    hit_full = disc_overlaps_wall_bits(full, row_bits, cell, radius)
-    ok_x = ~disc_overlaps_wall_bits(only_x, row_bits, cell, radius)
-    ok_y = ~disc_overlaps_wall_bits(only_y, row_bits, cell, radius)
+    hit_full = disc_overlaps_wall_bits(full, row_bits, cell, radius, reach)
+    ok_x = ~disc_overlaps_wall_bits(only_x, row_bits, cell, radius, reach)
+    ok_y = ~disc_overlaps_wall_bits(only_y, row_bits, cell, radius, reach)
     prefer_x = jnp.abs(delta[0]) >= jnp.abs(delta[1])
     slide = jnp.where(
         ok_x & ok_y,

@@ -3,7 +3,8 @@
 A map is read into an occupancy picture (True = the robot may not be there: occupied, and unknown
 unless told otherwise), then laid on the env's cell grid conservatively: a cell is wall if any
 such pixel overlaps it, so every free cell of the grid is free space in the map, and a passage the
-grid opens is one the disc can drive (the robot is narrower than a cell). The map's lower-left
+grid opens is one the disc can drive (a robot wider than a cell starts and drives only where its
+disc fits: ``env.clearance``). The map's lower-left
 corner sits at the corner of cell (1, 1), inside the outer ring of wall; cells the map does not
 reach are wall. Free cells that the robot cannot reach from the largest free region (islands
 behind unknown space, closed rooms) become wall, so starts and goals are only drawn where the robot

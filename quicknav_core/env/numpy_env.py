@@ -24,6 +24,7 @@ import gymnasium as gym
 import numpy as np
 
 from quicknav_core.config.env import EnvConfig
+from quicknav_core.env.clearance import reach_cells, spawn_region
 from quicknav_core.env.constants import (
     BIG,
     CARVE_MOVES,
@@ -157,14 +158,17 @@ def perturb_scan_np(
 
 
 def disc_overlaps_wall_np(pos: np.ndarray, walls: np.ndarray, cell: float, radius: float) -> bool:
-    """Whether a disc at ``pos`` overlaps a wall; only the 3x3 cells around it can."""
+    """Whether a disc at ``pos`` overlaps a wall; only the cells within ``reach_cells`` of its own
+    can (the 3x3 around it for a robot narrower than a cell)."""
     g = walls.shape[0]
     cell = f32(cell)
+    k = reach_cells(float(radius), float(cell))
+    n = min(2 * k + 1, g)
     row, col = (np.floor(pos[::-1] / cell)).astype(np.int64)
-    r0, c0 = int(np.clip(row - 1, 0, g - 3)), int(np.clip(col - 1, 0, g - 3))
-    block = walls[r0 : r0 + 3, c0 : c0 + 3]
-    y0 = (np.arange(r0, r0 + 3).astype(f32) * cell).astype(f32)
-    x0 = (np.arange(c0, c0 + 3).astype(f32) * cell).astype(f32)
+    r0, c0 = int(np.clip(row - k, 0, g - n)), int(np.clip(col - k, 0, g - n))
+    block = walls[r0 : r0 + n, c0 : c0 + n]
+    y0 = (np.arange(r0, r0 + n).astype(f32) * cell).astype(f32)
+    x0 = (np.arange(c0, c0 + n).astype(f32) * cell).astype(f32)
     gap_y = np.maximum(np.maximum(y0 - pos[1], pos[1] - (y0 + cell)), f32(0.0))
     gap_x = np.maximum(np.maximum(x0 - pos[0], pos[0] - (x0 + cell)), f32(0.0))
     dist2 = gap_y[:, None] ** 2 + gap_x[None, :] ** 2
@@ -191,6 +195,7 @@ class QuickNavNumpyEnv(gym.Env):
         self.action_space = gym.spaces.Box(-1.0, 1.0, (2,), dtype=np.float32)
         c = self.config
         self._cell = f32(c.room_size / c.grid_size)
+        self._spawn_radius = c.spawn_radius
         self._angles = beam_angles(c.lidar_beams, c.lidar_fov_deg)
         self._rooms: dict[int, np.ndarray] = {}
         self._bank_size = self.config.train_rooms if split == "train" else self.config.test_rooms
@@ -233,7 +238,8 @@ class QuickNavNumpyEnv(gym.Env):
         rng = self.np_random
         walls = self.room(int(rng.integers(self._bank_size)))
         g = c.grid_size
-        free = np.flatnonzero(~walls.reshape(-1))
+        # where the disc fits and can drive (every free cell for a robot narrower than a cell)
+        free = np.flatnonzero(spawn_region(walls, float(self._cell), self._spawn_radius).reshape(-1))
         s = int(rng.integers(free.size))
         start = free[s]
         perturbation = self._draw_perturbation(rng)

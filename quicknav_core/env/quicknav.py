@@ -11,6 +11,7 @@ import numpy as np
 from gymnax.environments import environment, spaces
 
 from quicknav_core.env.bits import num_words, pack_rows, pack_rows_np, read_bit, set_bit
+from quicknav_core.env.clearance import spawn_cells
 from quicknav_core.env.constants import HIT_GOAL, HIT_WALL, check_split, observation_bounds
 from quicknav_core.env.dynamics import drive, move_with_sliding, wheel_command
 from quicknav_core.env.lidar import cast_lidar_packed
@@ -68,6 +69,7 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         self.observe_goal = config.observe_goal
         self.final_obs = config.final_obs
         self.randomized = config.randomize is not None
+        self.reach = config.collision_reach  # 0: narrower than a cell (the four-cell test)
 
     # Identity: jit treats the env as a static argument. Two envs are the same static argument
     # when their compiled code is the same: the fields that fix shapes and code paths. Numbers
@@ -77,7 +79,7 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
     def static_key(self) -> tuple:
         c = self.config
         return (c.grid_size, c.lidar_beams, c.lidar_fov_deg, c.lidar_method, c.goal_candidates,
-                c.observe_goal, c.final_obs, self.randomized)  # fmt: skip
+                c.observe_goal, c.final_obs, self.randomized, self.reach)  # fmt: skip
 
     def __hash__(self) -> int:
         return hash(("QuickNavEnv", self.static_key))
@@ -335,7 +337,7 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         delta, theta = drive(
             state.theta, command, params.max_wheel_speed, params.wheel_base, params.dt
         )
-        pos, collided = move_with_sliding(state.pos, delta, state.row_bits, cell, radius)
+        pos, collided = move_with_sliding(state.pos, delta, state.row_bits, cell, radius, self.reach)
         rc = jnp.clip(jnp.floor(pos[::-1] / cell).astype(jnp.int32), 0, g - 1)
         entered = jnp.any(rc != state.cell)
         seen = read_bit(state.visited_bits[rc[0]], rc[1])
@@ -395,7 +397,7 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
 def make_params(config: EnvConfig, split: Split = "train") -> EnvParams:
     """EnvParams for ``config`` holding the ``split`` room bank."""
     rooms = make_room_bank(config, check_split(split))
-    free, counts = free_cell_table(rooms)
+    free, counts = free_cell_table(~spawn_cells(rooms, config, split))
     f32 = np.float32
     return EnvParams(
         rooms=jnp.asarray(rooms),

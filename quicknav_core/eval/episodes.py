@@ -64,7 +64,8 @@ def _runner(env, agent: Agent, batch: int, gif: int, deterministic: bool):
         obs, states = jax.vmap(env.reset, in_axes=(0, None))(keys, params)
         ref = jax.vmap(
             lambda rb, s, goal: shortest_path_length(
-                rb, s, goal, params.room_size, params.robot_radius, params.goal_radius
+                rb, s, goal, params.room_size, params.robot_radius, params.goal_radius,
+                reach=env.reach,
             )
         )(states.row_bits, states.pos, states.goal)
         agent_state = agent.init(env, params, states, payload)

@@ -37,12 +37,12 @@ def node_positions(grid_size: int, room_size: float | jax.Array, k: int) -> jax.
     return jnp.stack([xs, ys], axis=-1)
 
 
-def usable_nodes(row_bits: jax.Array, room_size, radius, k: int) -> jax.Array:
-    """(n, n) bool: the disc fits at the node."""
+def usable_nodes(row_bits: jax.Array, room_size, radius, k: int, reach: int = 0) -> jax.Array:
+    """(n, n) bool: the disc fits at the node (``reach``: as in ``disc_overlaps_wall_bits``)."""
     g = row_bits.shape[0]
     pts = node_positions(g, room_size, k).reshape(-1, 2)
     cell = room_size / g
-    hit = jax.vmap(lambda p: disc_overlaps_wall_bits(p, row_bits, cell, radius))(pts)
+    hit = jax.vmap(lambda p: disc_overlaps_wall_bits(p, row_bits, cell, radius, reach))(pts)
     return ~hit.reshape(g * k, g * k)
 
 
@@ -94,12 +94,12 @@ def _nearest_nodes(pos, n: int, h) -> tuple[jax.Array, jax.Array]:
     return rows, cols
 
 
-def goal_field(row_bits, goal, room_size, radius, k: int) -> tuple[jax.Array, jax.Array]:
+def goal_field(row_bits, goal, room_size, radius, k: int, reach: int = 0) -> tuple[jax.Array, jax.Array]:
     """(distance field to the goal point (n, n), usable (n, n))."""
     g = row_bits.shape[0]
     n = g * k
     h = room_size / n
-    usable = usable_nodes(row_bits, room_size, radius, k)
+    usable = usable_nodes(row_bits, room_size, radius, k, reach)
     nodes = node_positions(g, room_size, k)
     rows, cols = _nearest_nodes(goal, n, h)
     dist = jnp.linalg.norm(nodes[rows, cols] - goal, axis=-1)
@@ -117,13 +117,13 @@ def path_length_from(field: jax.Array, pos, room_size, k: int) -> jax.Array:
 
 
 def shortest_path_length(
-    row_bits, start, goal, room_size, radius, goal_radius, k: int = 5
+    row_bits, start, goal, room_size, radius, goal_radius, k: int = 5, reach: int = 0
 ) -> jax.Array:
     """Reference length of an episode: shortest disc path from ``start`` into the goal disc.
 
     Returns INF-sized values (>= 1e8) if the goal cannot be reached.
     """
-    field, _ = goal_field(row_bits, goal, room_size, radius, k)
+    field, _ = goal_field(row_bits, goal, room_size, radius, k, reach)
     return jnp.maximum(path_length_from(field, start, room_size, k) - goal_radius, 0.0)
 
 
@@ -162,16 +162,17 @@ def greedy_path(field: jax.Array, usable: jax.Array, start_node: tuple[int, int]
 
 
 # --------------------------------------------------------------------------- oracle controller
-def oracle_plan(row_bits, goal, room_size, radius, k: int = 5, margin: float = 0.06):
+def oracle_plan(row_bits, goal, room_size, radius, k: int = 5, margin: float = 0.06, reach: int = 0):
     """What the oracle controller needs for one episode.
 
     Two distance fields: one planned with a safety ``margin`` added to the radius (the path the
     controller prefers, away from walls) and one with the exact radius (used where the margin
-    closes a passage). Returns ((field, usable), (field, usable)).
+    closes a passage). Returns ((field, usable), (field, usable)). A wide robot (``reach`` >= 1)
+    checks one cell further for the margin.
     """
     return (
-        goal_field(row_bits, goal, room_size, radius + margin, k),
-        goal_field(row_bits, goal, room_size, radius, k),
+        goal_field(row_bits, goal, room_size, radius + margin, k, reach + 1 if reach else 0),
+        goal_field(row_bits, goal, room_size, radius, k, reach),
     )
 
 

@@ -37,7 +37,8 @@ class OracleAgent(Agent):
         return ("oracle", self.room_size, self.goal_radius)
 
     def init(self, env, params, states, payload):
-        plan = jax.vmap(lambda rb, g: oracle_plan(rb, g, params.room_size, params.robot_radius))
+        plan = jax.vmap(lambda rb, g: oracle_plan(rb, g, params.room_size, params.robot_radius,
+                                                  reach=env.reach))  # fmt: skip
         return plan(states.row_bits, states.goal)
 
     def act(self, plans, obs, states, start, key, deterministic, payload):

@@ -50,8 +50,10 @@ class EpisodePool:
 
 def draw_episodes(rooms: np.ndarray, config: EnvConfig, per_room: int, seed: int):
     """(room, start cell, goal cell) for ``per_room`` episodes of every room, by the spawn rule."""
+    from quicknav_core.env.clearance import spawn_regions
+
     rng = np.random.default_rng(seed)
-    free, counts = free_cell_table(rooms)
+    free, counts = free_cell_table(~spawn_regions(rooms, config.cell_size, config.spawn_radius))
     g = rooms.shape[-1]
     n_rooms = rooms.shape[0]
     room = np.repeat(np.arange(n_rooms, dtype=np.int32), per_room)
@@ -67,7 +69,7 @@ def draw_episodes(rooms: np.ndarray, config: EnvConfig, per_room: int, seed: int
     return room, start.astype(np.int32), goal.astype(np.int32)
 
 
-def path_lengths(params: EnvParams, room, start, goal, grid: int) -> np.ndarray:
+def path_lengths(params: EnvParams, room, start, goal, grid: int, reach: int = 0) -> np.ndarray:
     """The oracle planner's shortest path (metres) from each start cell's centre to its goal
     cell's centre, less the goal radius: its distance field (``eval.planning.distance_field``)
     on the cell grid, seeded at the goal cell alone."""
@@ -76,7 +78,7 @@ def path_lengths(params: EnvParams, room, start, goal, grid: int) -> np.ndarray:
     cell = float(params.room_size) / grid
 
     def one(row_bits, s, g_):
-        usable = usable_nodes(row_bits, params.room_size, params.robot_radius, PLANNER_K)
+        usable = usable_nodes(row_bits, params.room_size, params.robot_radius, PLANNER_K, reach)
         seeds = jnp.full((grid, grid), 1e9).at[g_ // grid, g_ % grid].set(0.0)
         field = distance_field(usable, seeds, cell)
         return jnp.maximum(field[s // grid, s % grid] - params.goal_radius, 0.0)
@@ -96,7 +98,7 @@ def make_pool(params: EnvParams, config: EnvConfig, curriculum: CurriculumConfig
     """The sorted pool of a bank (``params.rooms``) and its level counts."""
     rooms = np.asarray(params.rooms)
     room, start, goal = draw_episodes(rooms, config, curriculum.episodes_per_room, seed)
-    length = path_lengths(params, room, start, goal, rooms.shape[-1])
+    length = path_lengths(params, room, start, goal, rooms.shape[-1], config.collision_reach)
     order = np.argsort(length, kind="stable")
     length = length[order]
     counts = [int(np.searchsorted(length, f * config.room_size, side="left")) for f in curriculum.levels]

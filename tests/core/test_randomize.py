@@ -186,7 +186,6 @@ def test_randomize__changing_ranges_does_not_recompile():
         ({"lidar_noise_frac": [0.2, 0.1]}, "lidar_noise_frac=[0.2, 0.1]: a range is [low, high]"),
         ({"latency_steps": [0, LATENCY_MAX_STEPS + 1]}, "less than or equal to 4"),
         ({"beam_dropout": [0, 1.0]}, "less than or equal to 0.99"),
-        ({"robot_radius_m": [0.1, 0.6]}, "allowed range high < 0.5 m"),
         ({"wheel_scale_left": [1.0, 1.5]}, "allowed range wheel scale <="),
         ({"lidar_noise": [0, 1]}, "lidar_noise"),
     ],

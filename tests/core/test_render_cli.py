@@ -62,9 +62,9 @@ def test_cli__bad_config_is_reported_with_field_and_range(tmp_path):
     assert result.exit_code == 2
     assert "lidar_beams" in result.output and "greater than or equal to 1" in result.output
     bad = tmp_path / "cfg.json"
-    bad.write_text(json.dumps({"grid_size": 8, "robot_radius": 0.6}))
+    bad.write_text(json.dumps({"grid_size": 8, "robot_radius": 0.9}))  # fits in no cave's passages
     result = runner.invoke(app, ["env", "demo", "--config", str(bad)])
-    assert result.exit_code == 2 and "robot_radius" in result.output
+    assert result.exit_code == 2 and "robot_radius: a robot of radius 0.9 m fits in" in result.output
     result = runner.invoke(app, ["env", "demo", "--policy", "smart"])
     assert result.exit_code == 2 and "allowed values" in result.output
 

@@ -356,3 +356,25 @@ def test_cli__maps_upload_list_show_delete(server, tmp_path):
     assert gone.exit_code == 0 and f"deleted map {map_id}" in gone.output
     missing = cli.invoke(app, [*url, "show", map_id])
     assert missing.exit_code == 1 and "no map" in missing.output
+
+
+def test_sweep_job_on_an_uploaded_map__its_trial_batches_read_it_on_the_worker(server):
+    from tests.core.test_sweep import BASE, SPACE
+
+    meta = upload(server.url, [("room.yaml", yaml_for()), ("room.pgm", pgm(room_picture()))]).json()
+    base = {**BASE, "env": {**BASE["env"], "rooms": "maps", "maps": {"train": [meta["ref"]]},
+                            "grid_size": 18, "room_size": 9.0}}  # fmt: skip
+    r = httpx.post(f"{server.url}/jobs/sweep", json={"config": {
+        "base": base, "space": SPACE, "trials": 2, "parallel": 1, "eval_episodes": 4,
+        "objective": "return"}})  # fmt: skip
+    assert r.status_code == 202, r.text
+    sweep = r.json()
+    server.worker().run_burst(poll_s=0.05)
+    done = wait_status(server.url, sweep["id"], {"succeeded", "failed"})
+    assert done["status"] == "succeeded", done["error"]
+    batches = httpx.get(f"{server.url}/jobs", params={"kind": "trial"}).json()["data"]
+    assert len(batches) == 2 and all(b["status"] == "succeeded" for b in batches)
+    assert all(b["config"]["sweep"]["base"]["env"]["maps"]["train"] == [meta["ref"]] for b in batches)
+    from quicknav_service.maps import maps_named
+
+    assert all(maps_named(b["config"]) == {meta["id"]} for b in batches)  # what DELETE's 409 reads

@@ -41,10 +41,8 @@ def _active_use(jobs: JobsDep) -> dict[str, list[str]]:
         while True:
             page, count = jobs.store.list(status=status, limit=PAGE, offset=offset)
             for job in page:
-                config = job.config or {}
-                for env in (config.get("env"), (config.get("base") or {}).get("env")):
-                    for map_id in maps_named(env):
-                        out.setdefault(map_id, []).append(job.id)
+                for map_id in maps_named(job.config):
+                    out.setdefault(map_id, []).append(job.id)
             offset += len(page)
             if not page or offset >= count:
                 break

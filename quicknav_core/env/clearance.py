@@ -1,0 +1,95 @@
+"""Where the robot's disc fits: the cells a start or a goal may be drawn in (NumPy only).
+
+A robot narrower than a cell fits at the centre of every free cell, and every room source makes
+its free cells one connected region, so starts and goals are drawn among all free cells (as the
+paper does). A robot as wide as a cell or wider (a building mapped at fine cells) fits only where
+its disc at the cell's centre overlaps no wall cell, and can drive only between such cells: the
+cells where starts and goals are drawn are the largest region of them that is connected by moves
+between side neighbours (the disc moving between two neighbouring centres clears every wall that
+it clears at both ends, so the region is one the robot can drive through).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def narrow(radius: float, cell: float) -> bool:
+    """Whether the disc fits at the centre of any free cell (it is narrower than a cell)."""
+    return 2.0 * radius < cell
+
+
+def reach_cells(radius: float, cell: float) -> int:
+    """How many cells from its own a disc of ``radius`` can overlap, whatever its position."""
+    return max(1, math.ceil(radius / cell))
+
+
+def disc_fits(walls: np.ndarray, cell: float, radius: float) -> np.ndarray:
+    """(..., g, g) bool: free cells whose centre holds the disc clear of every wall cell."""
+    fits = ~np.asarray(walls, dtype=bool)
+    if narrow(radius, cell):
+        return fits
+    g = fits.shape[-1]
+    k = reach_cells(radius, cell)
+    padded = np.pad(np.asarray(walls, bool), [(0, 0)] * (fits.ndim - 2) + [(k, k), (k, k)],
+                    constant_values=True)  # fmt: skip
+    for dy in range(-k, k + 1):
+        for dx in range(-k, k + 1):
+            # gap from a cell's centre to the cell (dy, dx) away, in metres
+            gy, gx = max(abs(dy) - 0.5, 0.0) * cell, max(abs(dx) - 0.5, 0.0) * cell
+            if gy * gy + gx * gx < radius * radius:
+                fits &= ~padded[..., k + dy:k + dy + g, k + dx:k + dx + g]
+    return fits
+
+
+def spawn_region(walls: np.ndarray, cell: float, radius: float) -> np.ndarray:
+    """(g, g) bool: the cells starts and goals are drawn in (see the module doc)."""
+    fits = disc_fits(walls, cell, radius)
+    if narrow(radius, cell):
+        return fits
+    from scipy import ndimage
+
+    labels, n = ndimage.label(fits)
+    if n == 0:
+        return fits
+    sizes = np.bincount(labels.ravel())[1:]
+    return labels == int(np.argmax(sizes)) + 1
+
+
+def spawn_regions(rooms: np.ndarray, cell: float, radius: float) -> np.ndarray:
+    """``spawn_region`` of every room of a bank: (n, g, g) bool."""
+    if narrow(radius, cell):
+        return ~np.asarray(rooms, dtype=bool)
+    return np.stack([spawn_region(r, cell, radius) for r in rooms])
+
+
+def spawn_cells(rooms: np.ndarray, config, split: str) -> np.ndarray:
+    """(n, g, g) bool: where the episodes of each room of a bank start and end. A ValueError
+    names the robot's radius when some room has no two cells it fits in."""
+    radius, cell = config.spawn_radius, config.cell_size
+    regions = spawn_regions(rooms, cell, radius)
+    counts = regions.reshape(len(regions), -1).sum(axis=1)
+    short = np.flatnonzero(counts < 2)
+    if short.size:
+        field = "randomize.robot_radius_m" if radius > config.robot_radius else "robot_radius"
+        raise ValueError(
+            f"{field}: a robot of radius {radius:g} m fits in fewer than two cells of {short.size}"
+            f" of the {len(rooms)} {split} rooms (room {int(short[0])} first): the disc (diameter"
+            f" {2 * radius:g} m) is wider than their passages of {cell:g} m cells. Use a smaller"
+            " robot, larger cells (room_size / grid_size), or wider passages (floorplan.door_width,"
+            " floorplan.corridor_width)"
+        )
+    return regions
+
+
+def check_fit(config) -> None:
+    """For a robot wider than a cell, build the banks and check that it fits in every room
+    (``spawn_cells``'s ValueError), before anything compiles or trains; nothing to do otherwise."""
+    if not config.collision_reach:
+        return
+    from quicknav_core.env.rooms import make_room_bank  # JAX carving
+
+    for split in ("train", "test"):
+        spawn_cells(make_room_bank(config, split), config, split)
