@@ -1,11 +1,12 @@
 """Env steps/s by room source, same run: carved 16x16 (the paper's), generated floor plans at 16, 64
-and 128 cells, and the shipped office map (map_server YAML + PGM) at 48 cells.
+and 128 cells, the shipped office map (map_server YAML + PGM) at 48 cells, and a 30 m floor plan at
+0.25 m cells (120) with a robot narrower than a cell and one wider.
 
     uv run python -m benchmarks.room_sources [--batch 1024] [--out benchmarks/results/room_sources.json]
 
-Every row: the same robot (radius 0.15 m), 16 lidar beams, random actions, the whole observation
-consumed, ``batch`` envs vmapped inside one jitted lax.scan (the method of `quicknav bench`); cells
-of 0.5 m (room side = grid x 0.5 m), so larger grids are larger buildings. The bank's build time
+Every row but the last two: the same robot (radius 0.15 m) and cells of 0.5 m (room side = grid x
+0.5 m), so larger grids are larger buildings; 16 lidar beams, random actions, the whole observation
+consumed, ``batch`` envs vmapped inside one jitted lax.scan (the method of `quicknav bench`). The bank's build time
 and the compile time are printed beside the rate.
 """
 
@@ -24,6 +25,7 @@ def configs():
 
     common = {"lidar_beams": 16, "final_obs": False, "train_rooms": 64, "test_rooms": 8}
     office = str(ROOT / "examples" / "maps" / "office.yaml")
+    fine = {"min_room": 12, "max_room": 40, "door_width": 4, "corridor_width": 4}
     return [
         ("carved 16", EnvConfig(grid_size=16, room_size=8.0, **common)),
         ("floorplan 16", EnvConfig(rooms="floorplan", grid_size=16, room_size=8.0, **common)),
@@ -31,6 +33,12 @@ def configs():
         ("floorplan 128", EnvConfig(rooms="floorplan", grid_size=128, room_size=64.0, **common)),
         ("map office 48",
          EnvConfig(rooms="maps", maps={"train": [office]}, grid_size=48, room_size=24.0, **common)),
+        # a 30 m floor at 0.25 m cells (the issue's building), doors 1 m wide: a robot narrower than
+        # a cell, then one wider (0.4 m across: the collision test reads the 3x3 cells around it)
+        ("floorplan 120 narrow", EnvConfig(rooms="floorplan", grid_size=120, room_size=30.0,
+                                           robot_radius=0.1, floorplan=fine, **common)),
+        ("floorplan 120 wide", EnvConfig(rooms="floorplan", grid_size=120, room_size=30.0,
+                                         robot_radius=0.2, floorplan=fine, **common)),
     ]
 
 

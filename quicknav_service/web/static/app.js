@@ -739,8 +739,7 @@ function drawFrame(canvas, data, ep, t) {
   const picture = place && data.pictures && data.pictures[ep.map];
   ctx.fillStyle = "#3b3b3b";
   if (picture) {
-    ctx.fillStyle = "#3b3b3b";
-    ctx.fillRect(0, 0, size, size);
+    ctx.fillRect(0, 0, size, size); // beyond the map: the grid's wall
     ctx.imageSmoothingEnabled = false;
     ctx.drawImage(picture, px(place.x0), py(place.y0 + place.height_m), px(place.width_m), px(place.height_m));
     ctx.fillStyle = "rgba(59,59,59,0.35)";
