@@ -213,12 +213,6 @@ class MapsConfig(StrictModel):
     negate: bool = Field(False, description="plain images: white is occupied")
 
 
-def max_grid_for(room_size: float, robot_radius: float) -> int:
-    """The largest grid whose cells are wider than the robot."""
-    g = int(room_size / (2 * robot_radius))
-    return g - 1 if 2 * robot_radius * g >= room_size else g
-
-
 class EnvConfig(StrictModel):
     """Everything that defines a QuickNav environment. ``build(split)`` returns ``(env, params)``."""
 
