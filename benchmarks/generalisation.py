@@ -19,17 +19,15 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import subprocess
 import sys
-import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != ROOT / "benchmarks"]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.cli_runs import run, trained  # noqa: E402
 from quicknav_core.bench.machine import machine_info, machine_line  # noqa: E402
-from quicknav_core.config import get_preset  # noqa: E402
 
 PRESETS = ("paper-ppo", "paper-lstm")
 TRAIN_ON = {"carved": [], "floorplan": ["--set", "env.rooms=floorplan"]}
@@ -41,22 +39,6 @@ EVAL_ON = {
     "office map": ["--set", "rooms=maps", "--set", f'maps.train=["{OFFICE}"]',
                    "--set", "grid_size=48", "--set", "room_size=24", "--set", "max_steps=600"],
 }  # fmt: skip
-
-
-def run(cmd: list[str]) -> float:
-    """Run a quicknav command in a fresh process; its wall time in seconds."""
-    start = time.perf_counter()
-    subprocess.run(cmd, cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
-    return time.perf_counter() - start
-
-
-def trained(run_dir: Path, preset: str) -> bool:
-    """Whether ``run_dir`` holds a training of ``preset`` that reached its step budget."""
-    metrics = run_dir / "metrics.jsonl"
-    if not metrics.exists():
-        return False
-    lines = [json.loads(x) for x in metrics.read_text().splitlines() if x.strip()]
-    return bool(lines) and lines[-1].get("env_steps", 0) >= get_preset(preset).total_steps
 
 
 def evaluate(target: list[str], out: Path, episodes: int, run_dir: Path | None) -> dict:
