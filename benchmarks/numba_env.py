@@ -279,7 +279,7 @@ class NumbaBatch:
 
     def __init__(self, config, num_envs: int, seed: int = 0, split: str = "train"):
         from quicknav_core.env.constants import beam_angles
-        from quicknav_core.env.rooms import free_cell_table, make_room_bank
+        from quicknav_core.env.room_sources import free_cell_table, make_room_bank
 
         c = config
         if c.reward.progress != "sign" or c.reward.exploration_reward:

@@ -56,7 +56,7 @@ def env_config(preset: str):
 
 def export_banks(folder: Path) -> None:
     """The train and test room banks of every peer row, as .npy (needs the JAX side)."""
-    from quicknav_core.env.rooms import make_room_bank
+    from quicknav_core.env.room_sources import make_room_bank
 
     folder.mkdir(parents=True, exist_ok=True)
     for preset, _ in ROWS.values():

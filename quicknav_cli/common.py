@@ -94,6 +94,19 @@ def resolved(resolve, request: dict[str, Any], **kw):
         fail("invalid configuration:\n  " + "\n  ".join(lines))
 
 
+def admitted(config, runtime) -> None:
+    """Run the admission every door runs (``quicknav_core.admission.admit``) with this machine's
+    limits (its devices; no server caps): exit naming every problem, before anything compiles."""
+    import jax
+
+    from quicknav_core.admission import Limits, admit
+
+    problems = admit(config, Limits(max_devices=jax.local_device_count()), runtime)
+    if problems:
+        fail("\n  ".join(["this run cannot start here:"] + [
+            f"{'.'.join(map(str, p['loc']))}: {p['msg']}" for p in problems]))  # fmt: skip
+
+
 def print_config(config) -> None:
     """A resolved config as JSON on stdout (nothing else printed)."""
     print(config.model_dump_json(indent=2))

@@ -8,7 +8,15 @@ from typing import Annotated
 
 import typer
 
-from quicknav_cli.common import EnvSetOpt, console, enable_compilation_cache, fail, read_json, sets
+from quicknav_cli.common import (
+    EnvSetOpt,
+    admitted,
+    console,
+    enable_compilation_cache,
+    fail,
+    read_json,
+    sets,
+)
 from quicknav_core.config import EnvConfig
 
 app = typer.Typer(
@@ -44,7 +52,8 @@ class DemoResult:
     collisions: int
 
 
-def run_demo(config: EnvConfig, out_dir: Path, policy: str = "oracle", seed: int = 0) -> DemoResult:
+def run_demo(config: EnvConfig, out_dir: Path, policy: str = "oracle", seed: int = 0,
+             runtime=None) -> DemoResult:  # fmt: skip
     """One episode in a train room, driven by the oracle (``scripted``) or at random, drawn."""
     from quicknav_core.config import EvalConfig
     from quicknav_core.env import render
@@ -54,9 +63,9 @@ def run_demo(config: EnvConfig, out_dir: Path, policy: str = "oracle", seed: int
     if policy not in DEMO_POLICIES:
         raise ValueError(f"policy={policy!r}: allowed values are {', '.join(DEMO_POLICIES)}")
     agent = baseline_agent("random" if policy == "random" else "oracle", config)
-    env, params = config.build("train")
+    env, params = config.build("train", runtime)
     cfg = EvalConfig(episodes=1, seed=seed, split="train", gif_episodes=1, pictures=False)
-    ep = run_episodes(env, params, agent, cfg)
+    ep = run_episodes(env, params, agent, cfg, runtime=runtime)
     steps = int(ep.steps[0])
     snaps = [
         {"walls": ep.walls[0], "pos": ep.trajectories[0, t], "theta": ep.gif["theta"][0, t],
@@ -82,7 +91,7 @@ def draw_rooms(
 ) -> Path:
     """The paper's Figure 1: generated rooms for several grid sizes."""
     from quicknav_core.env import render
-    from quicknav_core.env.rooms import make_room_bank
+    from quicknav_core.env.room_sources import make_room_bank
 
     rooms = {}
     for g in grid_sizes:
@@ -115,16 +124,14 @@ def demo(
     if policy not in DEMO_POLICIES:
         fail(f"--policy {policy!r}: allowed values are {', '.join(DEMO_POLICIES)}")
     enable_compilation_cache()
-    from quicknav_core.env.clearance import check_fit
-    from quicknav_core.env.room_sources import check_rooms
+    from quicknav_core.admission import RolloutRequest
+    from quicknav_core.runtime import Runtime
 
-    try:
-        check_rooms(cfg)  # a map that cannot be used, a robot that fits in no room: said, not raised
-        check_fit(cfg)
-    except ValueError as e:
-        fail(str(e))
+    runtime = Runtime()
+    # a map that cannot be used, a robot that fits in no room: said, not raised
+    admitted(RolloutRequest(cfg, num_envs=1), runtime)
     with console.status("running one episode and drawing it..."):
-        result = run_demo(cfg, out, policy=policy, seed=seed)
+        result = run_demo(cfg, out, policy=policy, seed=seed, runtime=runtime)
     outcome = "reached the goal" if result.goal_reached else "timed out"
     console.print(
         f"{policy} policy {outcome} after {result.steps} steps, return {result.episode_return:.1f},"

@@ -10,6 +10,7 @@ import typer
 from quicknav_cli.common import (
     EnvSetOpt,
     PrintConfigOpt,
+    admitted,
     console,
     enable_compilation_cache,
     fail,
@@ -98,18 +99,23 @@ def eval_cmd(
         print_config(cfg)
         return
     from quicknav_core.eval.evaluate import run_eval
+    from quicknav_core.layout import RunFolder
 
     if run is not None:
-        run_dir = run.parent if run.name == "checkpoint" else run
+        run_dir = RunFolder.of(run).path
         out_dir = out or (run_dir / "eval")
     else:
         run_dir = None
         out_dir = out or Path("eval") / policy
+    from quicknav_core.runtime import Runtime
+
+    runtime = Runtime()
+    admitted(cfg, runtime)  # the env's rooms and maps, as every door checks them
     enable_compilation_cache()
     what = f"{episodes} episodes" + (" at every perturbation level" if robustness else "")
     with console.status(f"evaluating on {what}..."):
         try:
-            result, _ = run_eval(cfg, out_dir, run_dir=run_dir)
+            result, _ = run_eval(cfg, out_dir, run_dir=run_dir, runtime=runtime)
         except (ValueError, FileNotFoundError) as e:
             fail(str(e))
     print_eval(result)

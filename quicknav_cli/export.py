@@ -56,9 +56,9 @@ def export_cmd(
     except ImportError:
         fail("exporting needs the export extra: pip install 'quicknav[export]'")
     from quicknav_core.export import export_run
-    from quicknav_core.train.run import CHECKPOINT_DIR
+    from quicknav_core.layout import RunFolder
 
-    run_dir = run.parent if run.name == CHECKPOINT_DIR else run
+    run_dir = RunFolder.of(run).path
     if not run_dir.is_dir():
         fail(f"run folder {run_dir} does not exist")
     enable_compilation_cache()

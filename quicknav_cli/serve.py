@@ -71,6 +71,11 @@ def serve(
                   f" artifacts: {settings.artifacts_url or settings.artifacts_dir},"
                   f" in-process workers: {settings.max_concurrent_jobs if settings.embedded_worker else 0}",
                   soft_wrap=True)  # fmt: skip
+    from quicknav_service.runtime import service_runtime
+
+    # this process's one runtime (room banks, uploaded maps, compiled programs): the API's checks
+    # and the Rollout streams share it
+    runtime = service_runtime(settings)
     rollout = announcer = None
     if settings.grpc_enabled:
         import socket
@@ -80,7 +85,7 @@ def serve(
         # the API process starts JAX only when a rollout stream needs it
         rollout, announcer = start_rollout(settings, make_store(settings), settings.grpc_port,
                                            f"serve-{socket.gethostname()}-{os.getpid()}",
-                                           probe_device=False)  # fmt: skip
+                                           probe_device=False, runtime=runtime)  # fmt: skip
     # HTTPS when QUICKNAV_TLS_CERT/_KEY are set (uvicorn terminates TLS)
     tls = ({"ssl_certfile": str(settings.tls_cert), "ssl_keyfile": str(settings.tls_key)}
            if settings.tls_cert else {})  # fmt: skip
@@ -97,7 +102,7 @@ def serve(
                         port=settings.port, workers=api_workers, log_level="warning",
                         **uvicorn_options(settings, api_workers), **tls)  # fmt: skip
         else:
-            uvicorn.run(create_app(settings), host=settings.host, port=settings.port,
+            uvicorn.run(create_app(settings, runtime=runtime), host=settings.host, port=settings.port,
                         log_level="info", **uvicorn_options(settings), **tls)  # fmt: skip
     finally:
         if announcer is not None:
@@ -193,13 +198,13 @@ def worker(
             rollout.stop()
 
 
-def start_rollout(settings, store, port: int, name: str, probe_device: bool = True):
+def start_rollout(settings, store, port: int, name: str, probe_device: bool = True, runtime=None):
     """The gRPC Rollout server of this process, announced in the store for the API to list."""
     from quicknav_service.rollout.announce import EndpointAnnouncer, advertised_address
     from quicknav_service.rollout.server import BackgroundServer
 
     try:
-        rollout = BackgroundServer(settings, port=port).start()
+        rollout = BackgroundServer(settings, port=port, runtime=runtime).start()
     except OSError as e:
         fail(str(e))
     address = advertised_address(settings.rollout_advertise, rollout.port, settings.host)

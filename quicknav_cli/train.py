@@ -12,6 +12,7 @@ from rich.text import Text
 from quicknav_cli.common import (
     PrintConfigOpt,
     SetOpt,
+    admitted,
     console,
     enable_compilation_cache,
     fail,
@@ -104,19 +105,14 @@ def train(
     if print_only:
         print_config(cfg)
         return
-    from quicknav_core.env.clearance import check_fit
-    from quicknav_core.env.room_sources import check_rooms
+    from quicknav_core.runtime import Runtime
     from quicknav_core.train.trainers import local_devices
 
-    try:
-        check_rooms(cfg.env)  # a map that cannot be used is refused before anything compiles
-        check_fit(cfg.env)  # so is a robot wider than every room's passages
-        devices = local_devices(cfg.devices)
-    except ValueError as e:
-        fail(str(e))
-    if cfg.num_envs % len(devices):
-        fail(f"devices={cfg.devices!r} is {len(devices)} devices here, which must divide"
-             f" num_envs={cfg.num_envs}")  # fmt: skip
+    runtime = Runtime()  # this command's banks and compiled programs
+    # every door's admission: a map that cannot be used, a robot wider than every room's
+    # passages, more devices than this machine has: refused before anything compiles
+    admitted(cfg, runtime)
+    devices = local_devices(cfg.devices)
     enable_compilation_cache()
     console.print(
         f"training {cfg.trainer_kind} ({cfg.network.kind}) for {cfg.total_steps:,} env steps,"
@@ -143,7 +139,7 @@ def train(
             return False
 
         summary = train_run(cfg, run_dir, callback=on_chunk, resume=resume is not None,
-                            checkpoint_every=checkpoint_every)  # fmt: skip
+                            checkpoint_every=checkpoint_every, runtime=runtime)  # fmt: skip
     final = summary["final"]
     console.print(
         f"done: {summary['env_steps']:,} env steps; last chunk: return {final.get('mean_return', 0):.1f},"

@@ -28,9 +28,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-ONNX_FILE = "policy.onnx"
+from quicknav_core.layout import RUN, RunFolder
+from quicknav_core.runtime import runtime_or_new
+
+ONNX_FILE, MANIFEST_FILE = RUN.policy, RUN.manifest  # the layout's names
 START_DOC = "bool (B,): true on an episode's first step; the network resets that env's state itself"
-MANIFEST_FILE = "policy.json"
 FORMAT_VERSION = 1
 OPSET = 23
 
@@ -159,14 +161,14 @@ def _initial_value(value) -> Any:
 
 # --------------------------------------------------------------------------- a run folder
 def export_run(run_dir: Path, out_dir: Path, provenance: dict[str, Any] | None = None,
-               trainer=None) -> dict[str, Any]:  # fmt: skip
+               trainer=None, runtime=None) -> dict[str, Any]:  # fmt: skip
     """Write ``policy.onnx`` and ``policy.json`` of a run folder's last checkpoint into ``out_dir``
     (checked by onnxruntime against the JAX policy on random observations before returning).
     ``trainer``: a warm trainer of the run's config (a worker's), which spares building one."""
     from quicknav_core.train.run import load_run
 
     run_dir, out_dir = Path(run_dir), Path(out_dir)
-    config, trainer, state, meta = load_run(run_dir, trainer)
+    config, trainer, state, meta = load_run(run_dir, trainer, runtime)
     policy = trainer.policy(state)
     model = to_onnx_model(policy, config.env.obs_dim)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -191,7 +193,7 @@ HELD_OUT_FIELDS = ("episodes", "success_rate", "success_ci95", "spl")
 def _held_out(run_dir: Path, env: dict[str, Any]) -> dict[str, Any] | None:
     """The run's held-out evaluation by ``quicknav eval`` (RUN/eval/eval.json), if it was made
     deterministically on the test bank of the env the policy trained in."""
-    path = run_dir / "eval" / "eval.json"
+    path = RunFolder(run_dir).eval_result
     if not path.exists():
         return None
     result = json.loads(path.read_text())
@@ -271,7 +273,7 @@ def check_parity(policy, onnx_path: Path, obs_dim: int, samples: int = 10_000, s
 
 
 def check_episodes(policy, onnx_path: Path, env_config, episodes: int = 20, seed: int = 0,
-                   split: str = "test") -> dict[str, Any]:  # fmt: skip
+                   split: str = "test", runtime=None) -> dict[str, Any]:  # fmt: skip
     """The JAX policy and the ONNX model along the same held-out episodes.
 
     Teacher-forced: one batch of envs is driven by the JAX policy, and the ONNX model is fed the
@@ -295,7 +297,8 @@ def check_episodes(policy, onnx_path: Path, env_config, episodes: int = 20, seed
         action, *state = session.run(None, feed)
         return action, state
 
-    envs = [BatchedEnv(env_config, episodes, seed=seed, split=split) for _ in range(2)]
+    runtime = runtime_or_new(runtime)
+    envs = [BatchedEnv(env_config, episodes, seed=seed, split=split, runtime=runtime) for _ in range(2)]
     obs = [e.reset() for e in envs]
     carry = policy.initial_carry(episodes)
     forced = [np.asarray(x) for x in jax.tree.leaves(carry)]

@@ -21,17 +21,17 @@ import math
 import os
 import time
 import traceback
-import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from quicknav_core.config import TrainConfig, apply_overrides
 from quicknav_core.config.base import json_safe
 from quicknav_core.config.sweep import METRICS, ParamSpec, SweepConfig
+from quicknav_core.layout import SWEEP
+from quicknav_core.runtime import Runtime, runtime_or_new
 from quicknav_core.train.batched import shape_signature, train_batch
+from quicknav_core.train.pictures import draw_study
 
 __all__ = ["SweepConfig", "evaluate_trial", "finished_count", "make_storage", "objective_value",
            "open_study", "retry_lost", "run_batch", "run_sweep", "study_storage", "write_outputs",
@@ -44,7 +44,8 @@ def evaluate_trial(trainer, state, env_params, cfg: SweepConfig) -> dict[str, An
 
     ecfg = EvalConfig(episodes=cfg.eval_episodes, seed=cfg.eval_seed, split="train", pictures=False,
                       gif_episodes=0)  # fmt: skip
-    ep = run_episodes(trainer.env, env_params, PolicyAgent(trainer.policy(state)), ecfg)
+    ep = run_episodes(trainer.env, env_params, PolicyAgent(trainer.policy(state)), ecfg,
+                      runtime=trainer.runtime)
     env_cfg = trainer.config.env
     return summarize(ep, env_cfg.max_steps, env_cfg.max_wheel_speed * env_cfg.dt)
 
@@ -68,7 +69,7 @@ def study_storage(url: str | None, folder: Path, prefix: str = ""):
 
     if url is None:
         return optuna.storages.RDBStorage(
-            f"sqlite:///{(Path(folder) / 'study.db').resolve()}",
+            f"sqlite:///{(Path(folder) / SWEEP.study).resolve()}",
             engine_kwargs={"connect_args": {"timeout": 60}},
         )
     if url.startswith("redis://") or url.startswith("rediss://"):
@@ -147,12 +148,15 @@ def retry_lost(study, tag: str) -> int:
 
 
 def run_batch(study, cfg: SweepConfig, count: int, tag: str | None = None,
-              stop: Callable[[], bool] | None = None) -> list[dict[str, Any]]:  # fmt: skip
+              stop: Callable[[], bool] | None = None,
+              runtime: Runtime | None = None) -> list[dict[str, Any]]:  # fmt: skip
     """Ask ``count`` trials, train them (trials that share array shapes side by side in one
-    compiled program), evaluate each on the train bank and tell the study. Trials carry
-    ``batch=tag`` when given. ``stop()`` true at a chunk end stops the training and tells the
-    group's trials failed ("stopped"). Returns per-group timings."""
+    compiled program, kept in ``runtime``), evaluate each on the train bank and tell the study.
+    Trials carry ``batch=tag`` when given. ``stop()`` true at a chunk end stops the training and
+    tells the group's trials failed ("stopped"). Returns per-group timings."""
     import optuna
+
+    runtime = runtime_or_new(runtime)
 
     asked = [study.ask() for _ in range(count)]
     groups: dict[str, list[tuple[Any, TrainConfig]]] = {}
@@ -165,7 +169,7 @@ def run_batch(study, cfg: SweepConfig, count: int, tag: str | None = None,
             trial.set_user_attr("error", f"{type(e).__name__}: {e}")
             study.tell(trial, state=optuna.trial.TrialState.FAIL)
             continue
-        groups.setdefault(shape_signature(tcfg), []).append((trial, tcfg))
+        groups.setdefault(shape_signature(tcfg, runtime), []).append((trial, tcfg))
     timings = []
     for members in groups.values():
         t0 = time.perf_counter()
@@ -179,7 +183,7 @@ def run_batch(study, cfg: SweepConfig, count: int, tag: str | None = None,
                     return True
                 return all(tr.should_prune() for tr in trials) and cfg.pruner != "none"
 
-            trainer, states, env_params, _ = train_batch([m[1] for m in members], on_chunk)
+            trainer, states, env_params, _ = train_batch([m[1] for m in members], on_chunk, runtime)
             if stop is not None and stop():
                 for trial in trials:
                     trial.set_user_attr("error", "stopped (the sweep was cancelled or its worker stopped)")
@@ -206,14 +210,17 @@ def run_batch(study, cfg: SweepConfig, count: int, tag: str | None = None,
 
 
 def run_sweep(
-    cfg: SweepConfig, out_dir: Path, progress: Callable[[dict], None] | None = None
-) -> dict[str, Any]:
+    cfg: SweepConfig, out_dir: Path, progress: Callable[[dict], None] | None = None,
+    runtime: Runtime | None = None,
+) -> dict[str, Any]:  # fmt: skip
     """Run (or continue) a study until it has ``cfg.trials`` finished trials; write the outputs."""
     import optuna
 
+    runtime = runtime_or_new(runtime)
+
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "sweep_config.json").write_text(cfg.model_dump_json(indent=2))
+    (out_dir / SWEEP.config).write_text(cfg.model_dump_json(indent=2))
     study = open_study(cfg, make_storage(cfg, out_dir))
     # trials left running by an interrupted earlier run are failed, not lost
     for t in study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.RUNNING,)):
@@ -223,7 +230,7 @@ def run_sweep(
         done = finished_count(study)
         if done >= cfg.trials:
             break
-        timings += run_batch(study, cfg, min(cfg.parallel, cfg.trials - done))
+        timings += run_batch(study, cfg, min(cfg.parallel, cfg.trials - done), runtime=runtime)
         write_trials(study, cfg, out_dir)
         if progress:
             best = best_so_far(study)
@@ -261,19 +268,18 @@ def write_trials(study, cfg: SweepConfig, out_dir: Path) -> dict[str, Any]:
                      "error": error or t.user_attrs.get("error"), "seconds": seconds,
                      "batch": t.user_attrs.get("batch"), "counted": t.number not in retried})  # fmt: skip
     out = {"objective": cfg.objective, "direction": cfg.resolved_direction, "trials": rows}
-    tmp = out_dir / "trials.json.tmp"
+    tmp = out_dir / f"{SWEEP.trials}.tmp"
     tmp.write_text(json.dumps(json_safe(out), default=float, allow_nan=False))
-    os.replace(tmp, out_dir / "trials.json")
+    os.replace(tmp, out_dir / SWEEP.trials)
     return out
 
 
 def write_outputs(study, cfg: SweepConfig, out_dir: Path) -> dict[str, Any]:
     """best_params.json, best_config.json, trials.csv, trials.json and the Optuna plots (PNG)."""
-    import optuna
 
     write_trials(study, cfg, out_dir)
     trials = study.get_trials(deepcopy=False)
-    with open(out_dir / "trials.csv", "w", newline="") as f:
+    with open(out_dir / SWEEP.trials_csv, "w", newline="") as f:
         names = sorted({k for t in trials for k in t.params})
         w = csv.writer(f)
         w.writerow(["number", "state", "value", *names, "error"])
@@ -284,36 +290,14 @@ def write_outputs(study, cfg: SweepConfig, out_dir: Path) -> dict[str, Any]:
     out = {"study": study.study_name, "trials": len(trials), "best_value": best_value,
            "best_params": best_params, "direction": cfg.resolved_direction, "objective": cfg.objective}  # fmt: skip
     if best_params is not None:
-        (out_dir / "best_params.json").write_text(
+        (out_dir / SWEEP.best_params).write_text(
             json.dumps({"value": best_value, "params": best_params}, indent=2)
         )
-        (out_dir / "best_config.json").write_text(
+        (out_dir / SWEEP.best_config).write_text(
             apply_overrides(cfg.base, best_params).model_dump_json(indent=2)
         )
-    complete = [t for t in trials if t.state == optuna.trial.TrialState.COMPLETE]
-    if complete:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        plots = {"optimization_history": optuna.visualization.matplotlib.plot_optimization_history,
-                 "parallel_coordinate": optuna.visualization.matplotlib.plot_parallel_coordinate}  # fmt: skip
-        if len(complete) >= 2 and len(cfg.space) >= 2:
-            plots["param_importances"] = optuna.visualization.matplotlib.plot_param_importances
-        for name, fn in plots.items():
-            try:
-                with warnings.catch_warnings():
-                    warnings.simplefilter(
-                        "ignore"
-                    )  # Optuna marks its matplotlib plots experimental
-                    ax = fn(study)
-                fig = ax.figure if hasattr(ax, "figure") else np.ravel(ax)[0].figure
-                fig.set_size_inches(9, 5)
-                fig.tight_layout()
-                fig.savefig(out_dir / f"{name}.png", dpi=100)
-                plt.close(fig)
-            except Exception as e:
-                out.setdefault("plot_errors", {})[name] = f"{type(e).__name__}: {e}"
-    (out_dir / "summary.json").write_text(json.dumps(out, indent=2, default=str))
+    plot_errors = draw_study(study, cfg, out_dir)  # a picture never costs a sweep its numbers
+    if plot_errors:
+        out["plot_errors"] = plot_errors
+    (out_dir / SWEEP.summary).write_text(json.dumps(out, indent=2, default=str))
     return out

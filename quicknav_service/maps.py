@@ -8,8 +8,8 @@ map files, so the same map uploaded twice is one map, and a stored map never cha
 that has fetched it once reads its own copy (``local_yaml``).
 
 A config names a stored map as ``map:<id>`` in ``env.maps.train`` / ``env.maps.test``; every
-service process registers ``local_yaml`` with the library (``maps.set_map_resolver``), so the env,
-its NumPy twin and the checks read it like a file.
+service process's ``Runtime`` reads such names through ``local_yaml`` (``quicknav_service.runtime``),
+so the env, its NumPy twin and the checks read it like a file.
 """
 
 from __future__ import annotations
@@ -237,9 +237,3 @@ def library(settings) -> MapLibrary:
 
     return MapLibrary(make_artifacts(settings), settings.max_map_pixels)
 
-
-def install_resolver(settings) -> None:
-    """Let this process's envs read ``map:<id>`` names from the settings' artifact store."""
-    from quicknav_core.env.maps import set_map_resolver
-
-    set_map_resolver(library(settings).local_yaml)

@@ -1,9 +1,10 @@
 """Request and response bodies of the HTTP API (one schema per direction).
 
 The train and sweep bodies are the library's request models: the API, the CLI and the SDK send the
-same requests to the same ``quicknav_core.config.resolve``. The eval body is the service's own: it
-names the trained policy by ``job_id`` (the library's ``source`` is a run folder for the CLI), and
-what it documents is exactly what it accepts.
+same requests to the same ``quicknav_core.config.resolve``. The eval body extends the library's
+``EvalFields`` (the fields both doors share) with ``job_id``, the service's name of the trained
+policy (the library's ``source`` is a run folder for the CLI): what it documents is exactly what it
+accepts.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from quicknav_core.config import SweepRequest, TrainRequest
-from quicknav_core.config.base import Split, StrictModel
+from quicknav_core.config.resolve import EvalFields
 from quicknav_service.jobs.models import JobKind, JobStatus
 
 # Ids are shown (CLI, web) by their first 8 characters; shorter prefixes match too many jobs.
@@ -24,34 +25,14 @@ TrainJobCreate = TrainRequest
 SweepJobCreate = SweepRequest
 
 
-class EvalJobCreate(StrictModel):
+class EvalJobCreate(EvalFields):
     """Evaluate a train job's checkpoint (``job_id``) or a baseline (``policy``) on fixed-seed
-    held-out episodes."""
+    held-out episodes. The fields besides ``job_id`` are the library's (``EvalFields``), one model
+    for both doors."""
 
     job_id: str | None = Field(
         None, min_length=MIN_ID_PREFIX, max_length=200,
         description=f"the train job whose policy is evaluated: {ID_DESCRIPTION}",
-    )  # fmt: skip
-    policy: Literal["random", "oracle"] | None = Field(None, description="a baseline policy")
-    env: dict[str, Any] = Field(
-        default_factory=dict,
-        description="EnvConfig fields (dotted keys or sections) set on the policy's env: the train"
-        " job's own for a trained policy, the defaults for a baseline",
-        examples=[{"max_steps": 200}],
-    )
-    episodes: int = Field(100, ge=1, le=100_000)
-    seed: int = Field(0, ge=0, le=2**31 - 1, description="episode seed: same seed, same episodes")
-    split: Split = Field("test", description="room bank: test (held out) or train")
-    deterministic: bool = Field(True, description="act with the policy's mean, not a sample")
-    robustness: bool = Field(
-        False,
-        description="also run the episodes at fixed levels of lidar noise, beam dropout, range bias,"
-        " action latency and wheel asymmetry: success and SPL per level in eval.json's"
-        " 'robustness', drawn in robustness.png",
-    )
-    stochastic: bool | None = Field(
-        None, deprecated=True,
-        description="deprecated: the opposite of 'deterministic'; send 'deterministic' instead",
     )  # fmt: skip
 
     @classmethod

@@ -32,16 +32,18 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from quicknav_core.layout import RUN
 from quicknav_service.artifacts import ArtifactUnavailable, make_artifacts
+from quicknav_service.job_context import JobContext, best_effort, sweep_storage, until_done
 from quicknav_service.job_kinds import RUNNERS
 from quicknav_service.jobs.capabilities import ANNOUNCE_TTL_S, Capabilities, can_run
 from quicknav_service.jobs.models import Job, JobKind, JobStatus, StoreUnavailable
+from quicknav_service.runtime import service_runtime
 from quicknav_service.settings import Settings
 
 log = logging.getLogger("quicknav.worker")
 
 MAX_BACKOFF_S = 10.0
-CANCEL_POLL_S = 1.0  # a running job's cancel flag is read at most this often
 
 
 def failure_reason(error: BaseException, job_dir: Path) -> str:
@@ -56,19 +58,14 @@ def failure_reason(error: BaseException, job_dir: Path) -> str:
 
 def kept(job_dir: Path) -> str:
     """What a failed job leaves behind (the last checkpoint, metrics lines)."""
-    from quicknav_core.train.run import METRICS_FILE, checkpoint_dir
+    from quicknav_core.layout import RunFolder
 
+    run = RunFolder(job_dir)
     parts = []
-    ckpt = checkpoint_dir(job_dir) if job_dir.exists() else None
-    if ckpt is not None:
-        try:
-            import json
-
-            meta = json.loads((ckpt / "meta.json").read_text())
-            parts.append(f"the checkpoint of chunk {meta['chunk']} ({meta['env_steps']:,} env steps)")
-        except (OSError, ValueError, KeyError):
-            parts.append("the last checkpoint")
-    metrics = job_dir / METRICS_FILE
+    meta = run.meta() if job_dir.exists() else None
+    if meta is not None:
+        parts.append(f"the checkpoint of chunk {meta.chunk} ({meta.env_steps:,} env steps)")
+    metrics = run.metrics
     if metrics.exists():
         lines = sum(1 for line in metrics.read_text().splitlines() if line.strip())
         parts.append(f"metrics.jsonl ({lines} chunks)")
@@ -83,11 +80,12 @@ class Worker:
         self.id = worker_id or f"{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:6]}"
         self.shutdown = threading.Event()
         self.busy = False
-        self._trainers: dict[str, Any] = {}
         self._coordinators: list[threading.Thread] = []  # sweeps this worker follows
         self._capabilities: Capabilities | None = None
         self._announced_at = 0.0
         self.artifacts = make_artifacts(settings)  # a folder, or an object store and a scratch folder
+        # room banks (carved once per config, kept on the data disk), uploaded maps, warm trainers
+        self.runtime = service_runtime(settings, self.artifacts)
         self.artifacts.work_dir("_").parent.mkdir(parents=True, exist_ok=True)
 
     # ------------------------------------------------------------------ loop
@@ -231,89 +229,35 @@ class Worker:
 
     # ------------------------------------------------------------------ store calls
     def best_effort(self, fn: Callable, *args) -> Any:
-        """A store call whose loss costs nothing lasting (a progress event): skipped in an outage."""
-        try:
-            return fn(*args)
-        except StoreUnavailable as e:
-            log.warning("job store unavailable (%s): %s skipped", e.reason, fn.__name__)
-            return None
+        """A store call whose loss costs nothing lasting: skipped in an outage (``job_context``)."""
+        return best_effort(fn, *args)
 
     def until_done(self, fn: Callable, *args, **kwargs) -> Any:
-        """A store call that must land (a job's end): retried with backoff through outages. On a
-        shutdown it is abandoned: the lease lapses and another worker finishes the job."""
-        backoff = 0.25
-        while True:
-            try:
-                return fn(*args, **kwargs)
-            except StoreUnavailable as e:
-                if self.shutdown.is_set():
-                    log.warning("shutting down during a store outage; %s abandoned", fn.__name__)
-                    return None
-                log.warning("job store unavailable (%s): %s again in %.1f s", e.reason,
-                            fn.__name__, backoff)  # fmt: skip
-                self.shutdown.wait(backoff)
-                backoff = min(backoff * 2, MAX_BACKOFF_S)
+        """A store call that must land, retried through outages (``job_context.until_done``)."""
+        return until_done(self.shutdown, fn, *args, **kwargs)
 
     # ------------------------------------------------------------------ jobs
     def job_dir(self, job_id: str) -> Path:
         """The local folder a job writes into (on an object store: uploaded from there)."""
         return self.artifacts.work_dir(job_id)
 
-    def stopper(self, job: Job, lost: threading.Event) -> Callable[..., str | None]:
-        """Why the job should stop now (lost lease, shutdown, cancel), or None. Cheap to ask
-        often: the store is read at most every CANCEL_POLL_S seconds, or whenever ``fresh``
-        (at chunk ends, which also write progress and checkpoints)."""
-        seen = {"at": 0.0, "cancel": False}
-
-        def reason(fresh: bool = False) -> str | None:
-            if lost.is_set():
-                return "lost"
-            if self.shutdown.is_set():
-                return "shutdown"
-            now = time.monotonic()
-            if fresh or now - seen["at"] >= CANCEL_POLL_S:
-                seen["at"] = now
-                try:
-                    seen["cancel"] = self.store.get(job.id).cancel_requested
-                except StoreUnavailable:
-                    pass
-            return "cancelled" if seen["cancel"] else None
-
-        return reason
-
-    @staticmethod
-    def config_of(job: Job) -> dict[str, Any]:
-        """The job's resolved config (jobs stored before configs were keep it in the request)."""
-        if job.config:
-            return job.config
-        if job.kind in (JobKind.train, JobKind.sweep) and "config" in job.request:
-            return job.request["config"]
-        raise ValueError(
-            "the job has no resolved config (it was submitted to an older version of the"
-            " service); submit it again"
-        )
-
-    def report(self, job: Job, progress: float, metrics: dict[str, Any]) -> None:
-        self.best_effort(self.store.progress, job.id, self.id, progress, metrics)
-        self.best_effort(self.store.publish, job.id,
-                          {"type": "progress", "progress": progress, "metrics": metrics})  # fmt: skip
-
-    def phase(self, job: Job, phase: str) -> None:
-        """Say what a running job does before its first numbers: ``compiling`` (the jit of its
-        first chunk or batch, tens of seconds cold), with the time it began."""
-        self.report(job, job.progress, {"phase": phase, "phase_since": round(time.time(), 3)})
+    def context(self, job: Job, lost: threading.Event) -> JobContext:
+        """What the runner of a claimed job is handed."""
+        return JobContext(job=job, worker_id=self.id, store=self.store, artifacts=self.artifacts,
+                          runtime=self.runtime, settings=self.settings, lost=lost,
+                          shutdown=self.shutdown)  # fmt: skip
 
     def _execute(self, job: Job, lost: threading.Event) -> None:
         self.best_effort(self.store.publish, job.id, {
             "type": "started", "status": "running", "worker": self.id, "attempt": job.attempts})  # fmt: skip
         try:
-            outcome, result = RUNNERS[job.kind](self, job, lost)
+            outcome, result = RUNNERS[job.kind](self.context(job, lost))
         except Exception as e:
             log.exception("job %s failed", job.id)
             reason = failure_reason(e, self.job_dir(job.id))
             try:
                 self.job_dir(job.id).mkdir(parents=True, exist_ok=True)
-                (self.job_dir(job.id) / "error.txt").write_text(traceback.format_exc())
+                (self.job_dir(job.id) / RUN.error).write_text(traceback.format_exc())
                 if not isinstance(e, ArtifactUnavailable) and not lost.is_set():
                     self.artifacts.save(job.id)  # what the failed job made, for its owner to read
             except (OSError, ArtifactUnavailable):
@@ -333,42 +277,22 @@ class Worker:
             self.until_done(self.store.finish, job.id, self.id, JobStatus.succeeded, result=result)
 
     def sweep_storage(self, sweep_id: str):
-        """The Optuna storage of a sweep job's study, shared by every worker, by the library's one
-        rule (``quicknav_core.sweep.study_storage``): journal storage on this store's Redis (keys
-        under quicknav:sweep:<id>:), or SQLite in the sweep's folder with the embedded store."""
-        from quicknav_core.sweep import study_storage
+        """The Optuna storage of a sweep job's study (``job_context.sweep_storage``)."""
+        return sweep_storage(self.settings, self.artifacts, sweep_id)
 
-        return study_storage(self.settings.redis_url, self.job_dir(sweep_id),
-                             prefix=f"quicknav:sweep:{sweep_id}:")  # fmt: skip
-
-    def trainer_for(self, config):
-        """A warm trainer for this exact config (its compiled chunks are reused)."""
-        from quicknav_core.train.trainers import make_trainer
-
-        key = config.model_dump_json()
-        if key not in self._trainers:
-            if len(self._trainers) >= 8:
-                self._trainers.pop(next(iter(self._trainers)))
-            self._trainers[key] = make_trainer(config)
-        return self._trainers[key]
 
 def _enable_jax_cache(settings: Settings) -> None:
     """The worker's devices (QUICKNAV_DEVICES); JAX's persistent compilation cache in the data
     folder, unless JAX_COMPILATION_CACHE_DIR already names one (an operator's shared cache, or a
-    test session's); and the room-bank cache (a bank is carved once per config, then read back)."""
+    test session's)."""
     import jax
 
     from quicknav_core.compile_cache import enable_compilation_cache
-    from quicknav_core.env.rooms import set_bank_cache
 
     if settings.devices is not None:
         # before the first computation starts a backend: this worker sees only its devices
         jax.config.update("jax_cuda_visible_devices", settings.devices)
         jax.config.update("jax_rocm_visible_devices", settings.devices)
-    set_bank_cache(settings.data_dir / "room-banks")
-    from quicknav_service.maps import install_resolver
-
-    install_resolver(settings)  # env.maps may name uploaded maps (map:<id>)
     enable_compilation_cache(settings.data_dir / "jax-cache")
 
 

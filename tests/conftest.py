@@ -1,8 +1,10 @@
 """Shared fixtures: small environments built once per session (JAX compile time dominates on CPU).
 
-JAX's persistent compilation cache is on for the whole session, in a folder made for it: a program
-compiled once (by a test, a CLI command, a worker subprocess) is loaded, not compiled again, when
-another test builds the same one. The folder starts empty, so a run measures what CI pays.
+One cache folder serves the whole test run (``QUICKNAV_TEST_CACHE``): JAX's persistent compilation
+cache and the demo policy trained once (``tests/trained.py``). ``.ci/run`` makes one, empty, for the
+CI run, so both suites and every xdist worker share it; without it, the first pytest process makes
+one (its xdist workers inherit it) and removes it when it ends. A program compiled once (by a test,
+a CLI command, a worker subprocess) is loaded, not compiled again, when another test builds it.
 """
 
 from __future__ import annotations
@@ -17,8 +19,11 @@ import pytest
 
 from quicknav_core.config import EnvConfig
 
-_CACHE = tempfile.mkdtemp(prefix="quicknav-test-jax-cache-")
-atexit.register(shutil.rmtree, _CACHE, ignore_errors=True)
+if "QUICKNAV_TEST_CACHE" not in os.environ:  # this process owns the run's folder: it removes it
+    os.environ["QUICKNAV_TEST_CACHE"] = tempfile.mkdtemp(prefix="quicknav-tests-")
+    atexit.register(shutil.rmtree, os.environ["QUICKNAV_TEST_CACHE"], ignore_errors=True)
+_CACHE = os.path.join(os.environ["QUICKNAV_TEST_CACHE"], "jax")
+os.makedirs(_CACHE, exist_ok=True)
 # this process and every subprocess a test starts (workers, `quicknav serve`); the CLI's own cache
 # setting reads QUICKNAV_JAX_CACHE, so CLI commands run by tests use the same folder
 os.environ["JAX_COMPILATION_CACHE_DIR"] = _CACHE
@@ -30,6 +35,22 @@ os.environ.setdefault("QUICKNAV_ALLOWED_HOSTS", "testserver,localhost,127.0.0.1,
 # a train job's policy export costs a worker process ~15 s the first time (jax2onnx); the tests of
 # the export set it back on (the journeys run `quicknav serve` as a user does: on by default)
 os.environ.setdefault("QUICKNAV_EXPORT_POLICIES", "false")
+
+
+@pytest.fixture(scope="session")
+def trained_demo_run():
+    """The demo preset's run folder, trained once per test run and shared (``tests/trained.py``)."""
+    from tests.trained import trained_demo
+
+    return trained_demo()
+
+
+@pytest.fixture(scope="session")
+def runtime():
+    """The test session's Runtime: room banks and compiled programs shared by the tests that take it."""
+    from quicknav_core.runtime import Runtime
+
+    return Runtime()
 
 
 @pytest.fixture(scope="session")

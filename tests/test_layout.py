@@ -2,7 +2,9 @@
 
 - the library imports no web framework, Redis or gRPC (it works with them blocked);
 - nothing outside ``quicknav_core/env/`` touches a private name of the env;
-- the library's modules import each other without cycles (lazy imports count too).
+- the library's modules, and its packages, import each other without cycles (lazy imports count
+  too), and so do the service's modules;
+- the library keeps no module-level mutable state (the Runtime holds it).
 """
 
 from __future__ import annotations
@@ -124,7 +126,8 @@ def _import_graph() -> dict[str, set[str]]:
 
 def test_library__imports_have_no_cycles():
     graph = _import_graph()
-    assert "quicknav_core.config.env" in graph["quicknav_core.env.numpy_env"]  # the scan works
+    assert "quicknav_core.env.constants" in graph["quicknav_core.env.numpy_env"]  # the scan works
+    assert "quicknav_core.env.room_sources" in graph["quicknav_core.env.numpy_env"]  # lazy ones too
     cycles = []
     state: dict[str, int] = {}
 
@@ -142,3 +145,113 @@ def test_library__imports_have_no_cycles():
         if module not in state:
             visit(module, [])
     assert not cycles, "\n".join(cycles)
+
+
+def _package_cycles(graph: dict[str, set[str]], depth: int) -> list[str]:
+    """Cycles between packages (module names cut to ``depth`` parts)."""
+    cut = lambda m: ".".join(m.split(".")[:depth])  # noqa: E731
+    edges: dict[str, set[str]] = {}
+    for a, targets in graph.items():
+        for b in targets:
+            if cut(a) != cut(b):
+                edges.setdefault(cut(a), set()).add(cut(b))
+    cycles = []
+    for start in sorted(edges):
+        stack, seen = [(start, [start])], set()
+        while stack:
+            node, path = stack.pop()
+            for nxt in sorted(edges.get(node, ())):
+                if nxt == start:
+                    cycles.append(" -> ".join([*path, nxt]))
+                elif nxt not in seen:
+                    seen.add(nxt)
+                    stack.append((nxt, [*path, nxt]))
+    return sorted(set(cycles))
+
+
+def test_library__its_packages_import_each_other_in_one_direction():
+    """config -> env (``EnvConfig.build``), never back; eval -> train (loading runs), never back."""
+    cycles = _package_cycles(_import_graph(), depth=2)
+    assert not cycles, "\n".join(cycles)
+
+
+def _service_graph() -> dict[str, set[str]]:
+    modules = _modules(ROOT / "quicknav_service")
+    graph: dict[str, set[str]] = {name: set() for name in modules}
+    for name, path in modules.items():
+        is_package = path.name == "__init__.py"
+        for node in _outside_type_checking(ast.parse(path.read_text())):
+            targets: list[str] = []
+            if isinstance(node, ast.Import):
+                targets = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    pkg = name.split(".") if is_package else name.split(".")[:-1]
+                    pkg = pkg[: len(pkg) - node.level + 1]
+                    base = ".".join([*pkg, base] if base else pkg)
+                targets = [f"{base}.{a.name}" if f"{base}.{a.name}" in modules else base
+                           for a in node.names]  # fmt: skip
+            graph[name] |= {t for t in targets if t in modules and t != name}
+    return graph
+
+
+def test_service__modules_import_each_other_without_cycles():
+    """Function-level imports count: the worker imports the job kinds, never the other way (a
+    runner gets a JobContext), and the Policy servicer shares helpers, not the Rollout servicer's."""
+    graph = _service_graph()
+    assert "quicknav_service.job_kinds" in graph["quicknav_service.worker"]  # the scan works
+    cycles = _package_cycles(graph, depth=99)
+    assert not cycles, "\n".join(cycles)
+
+
+MUTATING = {"setdefault", "pop", "update", "append", "clear", "add", "extend", "insert", "remove",
+            "popitem", "discard", "__setitem__", "appendleft"}  # fmt: skip
+
+
+def module_state(path: Path) -> list[str]:
+    """Module-level mutable state of one module: ``global`` statements, caches (``lru_cache``,
+    ``cache``) on functions, and module-level containers that a function changes."""
+    tree = ast.parse(path.read_text())
+    containers = set()
+    for node in tree.body:
+        value = getattr(node, "value", None)
+        targets = node.targets if isinstance(node, ast.Assign) else (
+            [node.target] if isinstance(node, ast.AnnAssign) else [])  # fmt: skip
+        made = isinstance(value, ast.Dict | ast.List | ast.Set | ast.DictComp | ast.ListComp | ast.SetComp) or (
+            isinstance(value, ast.Call) and isinstance(value.func, ast.Name)
+            and value.func.id in ("dict", "list", "set", "defaultdict", "OrderedDict", "deque"))  # fmt: skip
+        containers |= {t.id for t in targets if isinstance(t, ast.Name) and made}
+    found = []
+    for node in ast.walk(tree):
+        shown = path.relative_to(ROOT) if path.is_relative_to(ROOT) else path.name
+        where = f"{shown}:{getattr(node, 'lineno', 0)}"
+        if isinstance(node, ast.Global):
+            found.append(f"{where} global {', '.join(node.names)}")
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+            caches = [ast.unparse(d) for d in node.decorator_list if "cache" in ast.unparse(d)
+                      and "cached_property" not in ast.unparse(d)]  # fmt: skip
+            found += [f"{where} @{c} on {node.name}" for c in caches]
+            for inner in ast.walk(node):
+                call = isinstance(inner, ast.Call) and isinstance(inner.func, ast.Attribute)
+                if call and isinstance(inner.func.value, ast.Name) and inner.func.value.id in containers \
+                        and inner.func.attr in MUTATING:  # fmt: skip
+                    found.append(f"{where} {inner.func.value.id}.{inner.func.attr}()")
+                targets = (inner.targets if isinstance(inner, ast.Assign | ast.Delete)
+                           else [inner.target] if isinstance(inner, ast.AugAssign) else [])  # fmt: skip
+                found += [f"{where} {t.value.id}[...] =" for t in targets
+                          if isinstance(t, ast.Subscript) and isinstance(t.value, ast.Name)
+                          and t.value.id in containers]  # fmt: skip
+    return found
+
+
+def test_library__keeps_no_module_level_mutable_state(tmp_path):
+    """Process state lives in the Runtime passed down (``quicknav_core.runtime``), never in a module:
+    no globals, no caches on functions, no module-level containers that functions change."""
+    bad = tmp_path / "state_probe.py"
+    bad.write_text("import functools\n_CACHE = {}\n\ndef put(k, v):\n    _CACHE[k] = v\n\n"
+                   "_last = None\n\ndef remember(x):\n    global _last\n    _last = x\n\n"
+                   "@functools.lru_cache\ndef memo(x):\n    return x\n")  # fmt: skip
+    assert len(module_state(bad)) == 3, module_state(bad)  # the scan sees every kind
+    found = [f for path in sorted(LIBRARY.rglob("*.py")) for f in module_state(path)]
+    assert not found, "\n".join(found)

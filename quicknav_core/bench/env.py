@@ -115,7 +115,7 @@ def bench_numpy(grid: int, cfg: BenchConfig, cap_s: float) -> Measurement:
     from quicknav_core.env.numpy_env import QuickNavNumpyEnv
 
     config = env_config_for(grid, cfg)
-    from quicknav_core.env.rooms import make_room_bank
+    from quicknav_core.env.room_sources import make_room_bank
 
     # the same pre-generated rooms as the JAX env, so neither side carves while being timed
     env = QuickNavNumpyEnv(config, rooms=make_room_bank(config, "train"))

@@ -24,6 +24,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from quicknav_core.config import EnvConfig, get_preset, resolve_eval, resolve_train
+from quicknav_core.layout import EVAL, RunFolder
+from quicknav_core.runtime import Runtime
 
 if TYPE_CHECKING:  # pragma: no cover
     import numpy as np
@@ -149,10 +151,11 @@ EVAL_SEED = 0
 def run_one(row: Row, seed: int, runs_dir: Path, scale: float = 1.0, say=print) -> dict[str, Any]:
     """Train (or finish training) one seed of a row and evaluate it; returns its eval result."""
     from quicknav_core.eval.evaluate import run_eval
-    from quicknav_core.train.run import CONFIG_FILE, checkpoint_dir, read_meta, train_run
+    from quicknav_core.layout import RunFolder
+    from quicknav_core.train.run import read_meta, train_run
 
     run_dir = runs_dir / f"{row.key}-s{seed}"
-    eval_path = run_dir / "eval" / "eval.json"
+    eval_path = RunFolder(run_dir).eval_result
     if eval_path.exists():
         return json.loads(eval_path.read_text())
     steps = max(int(row.total_steps * scale), get_preset(row.preset).steps_per_update)
@@ -171,14 +174,16 @@ def run_one(row: Row, seed: int, runs_dir: Path, scale: float = 1.0, say=print) 
             f"success {result.metrics.get('success_rate', float('nan')):.0%}")  # fmt: skip
         return spent >= cap_s
 
-    resume = (run_dir / CONFIG_FILE).exists() and checkpoint_dir(run_dir) is not None
+    run = RunFolder(run_dir)
+    resume = run.config.exists() and run.checkpoint() is not None
     run_dir.mkdir(parents=True, exist_ok=True)
-    summary = train_run(cfg, run_dir, callback=stop, resume=resume)
+    runtime = Runtime()  # one for the run and its evaluation (banks built once)
+    summary = train_run(cfg, run_dir, callback=stop, resume=resume, runtime=runtime)
     eval_cfg = resolve_eval(
         {"run": str(run_dir), "episodes": EVAL_EPISODES, "seed": EVAL_SEED},
         trained_env=lambda _source: cfg.env,
     )
-    result, _ = run_eval(eval_cfg, run_dir / "eval", run_dir=run_dir)
+    result, _ = run_eval(eval_cfg, run_dir / "eval", run_dir=run_dir, runtime=runtime)
     meta = read_meta(run_dir)
     result["training"] = {
         "env_steps": meta["env_steps"],
@@ -237,7 +242,7 @@ def baselines(runs_dir: Path) -> dict[str, dict[str, Any]]:
     for table, preset in ((1, "paper-ppo"), (2, "paper-lstm")):
         env_cfg: EnvConfig = get_preset(preset).env
         for policy in ("oracle", "random"):
-            path = runs_dir / f"baseline-{policy}-table{table}" / "eval.json"
+            path = runs_dir / f"baseline-{policy}-table{table}" / EVAL.result
             if path.exists():
                 out[f"{policy}-table{table}"] = json.loads(path.read_text())
                 continue
@@ -450,7 +455,7 @@ def build_report(
               "whether more than 75 % succeeded).", ""]  # fmt: skip
     lines += agg_lines
     if profile_path is not None:
-        from quicknav_core.eval.aggregate import draw_profiles
+        from quicknav_core.eval.pictures import draw_profiles
 
         draw_profiles(panels, profile_path)
         lines += [f"Performance profiles (SPL): `{profile_path.name}`.", ""]
@@ -552,7 +557,7 @@ def run_learning_bench(out_dir: Path, runs_dir: Path, rows: list[str] | None, se
         selected = not rows or row.key in rows
         for seed in range(seeds):
             run_dir = runs_dir / f"{row.key}-s{seed}"
-            path = run_dir / "eval" / "eval.json"
+            path = RunFolder(run_dir).eval_result
             recorded = kept.get((row.key, seed))
 
             if path.exists():

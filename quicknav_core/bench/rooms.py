@@ -2,7 +2,7 @@
 
 Every grid builds the banks of the benchmark's env (``bench.env.env_config_for``: an 8 m room, a
 robot small enough for the grid, the default carving, room counts and seed) the way a training job
-does: ``make_room_bank(config, "train")``, then ``"test"`` (which reuses that train bank to keep its
+does: the room source's ``bank("train")``, then ``"test"`` (which reuses that train bank to keep its
 rooms out). The grid size is a compile-time shape, so each figure is a first call: tracing and
 compiling the carver are included. No bank cache is set, so nothing is read from disk.
 """
@@ -55,14 +55,15 @@ RoomsBenchReport = BenchReport
 def bench_grid(grid: int, cfg: RoomsBenchConfig) -> RoomsMeasurement:
     """Build the train bank, then the test bank, of the benchmark's env at ``grid``."""
     from quicknav_core.bench.env import BenchConfig, env_config_for
-    from quicknav_core.env.rooms import make_room_bank
+    from quicknav_core.env.room_sources import room_source
 
     env = env_config_for(grid, BenchConfig(room_size=cfg.room_size, seed=cfg.seed))
     config = EnvConfig.model_validate({**env.model_dump(), "carver": cfg.carver})
+    rooms = room_source(config)  # one runtime: the test bank skips the train bank built first
     t0 = time.perf_counter()
-    train = make_room_bank(config, "train")
+    train = rooms.bank("train")
     t1 = time.perf_counter()
-    test = make_room_bank(config, "test")
+    test = rooms.bank("test")
     t2 = time.perf_counter()
     free = int(min((~train).sum(axis=(1, 2)).min(), (~test).sum(axis=(1, 2)).min()))
     return RoomsMeasurement(

@@ -102,18 +102,20 @@ def run_one(row: Row, seed: int, cap_s: float, cache: str,
     from quicknav_core.config import EvalConfig, resolve_train
     from quicknav_core.eval.agents import PolicyAgent
     from quicknav_core.eval.episodes import run_episodes
+    from quicknav_core.runtime import Runtime
     from quicknav_core.train.trainers import make_trainer
 
     cfg = resolve_train(row.request(seed))
     # chunks of about a second of training: a chunk is the finest grain evaluations can see
     cfg = cfg.model_copy(update={"chunk_steps": max(cfg.steps_per_update, 16_384)})
-    test_env, test_params = cfg.env.build("test")
-    cfg.env.build("train")  # room banks are built before the clock starts, as for every row
+    runtime = Runtime()  # the run's banks and compiled programs
+    test_env, test_params = cfg.env.build("test", runtime)
+    cfg.env.build("train", runtime)  # room banks are built before the clock starts, as for every row
     eval_cfg = EvalConfig(episodes=EVAL_EPISODES, seed=0, deterministic=True, gif_episodes=0)
     result = RunResult(row.key, seed, cache, cap_s, False, None, None, 0.0, 0.0, 0.0,
                        machine=machine_line())  # fmt: skip
     t0 = clock()
-    trainer = make_trainer(cfg)
+    trainer = make_trainer(cfg, runtime)
     state = trainer.init_state()
     last_eval = 0.0
     done_updates = 0
@@ -127,7 +129,8 @@ def run_one(row: Row, seed: int, cap_s: float, cache: str,
         if not evaluation_due(result.train_s, last_eval) and done_updates < trainer.num_updates:
             continue
         e0 = clock()
-        ep = run_episodes(test_env, test_params, PolicyAgent(trainer.policy(state)), eval_cfg)
+        ep = run_episodes(test_env, test_params, PolicyAgent(trainer.policy(state)), eval_cfg,
+                          runtime=runtime)  # fmt: skip
         success = float(ep.success.mean())
         spent = clock() - e0
         result.eval_s += spent

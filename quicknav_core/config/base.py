@@ -7,12 +7,16 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict
 
-Split = Literal["train", "test"]
+from quicknav_core.markers import (  # noqa: F401 (the config package's names for them)
+    STATIC,
+    TRACED,
+    static_fields,
+    traced,
+    traced_fields,
+    traced_values,
+)
 
-# ``json_schema_extra`` of a field whose value ends up as a traced number (vmappable, no recompile):
-# fields marked this way may differ between trials that train side by side in one compiled program
-# (``quicknav_core.train.batched``); every other field fixes a shape or a code path.
-TRACED = {"traced": True}
+Split = Literal["train", "test"]
 
 
 class StrictModel(BaseModel):
@@ -20,15 +24,6 @@ class StrictModel(BaseModel):
 
     model_config = ConfigDict(
         extra="forbid", frozen=True, validate_default=True, allow_inf_nan=False
-    )
-
-
-def traced_fields(model: type[BaseModel]) -> frozenset[str]:
-    """Names of the fields of ``model`` marked as traced numbers."""
-    return frozenset(
-        name
-        for name, field in model.model_fields.items()
-        if isinstance(field.json_schema_extra, dict) and field.json_schema_extra.get("traced")
     )
 
 

@@ -15,16 +15,17 @@ within ``carve_max_steps`` is refused with the ways out.
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Annotated, Literal
+from typing import TYPE_CHECKING, Annotated, ClassVar, Literal
 
 from pydantic import Field, model_validator
 
-from quicknav_core.config.base import TRACED, Split, StrictModel
+from quicknav_core.config.base import STATIC, TRACED, Split, StrictModel, static_fields, traced
 from quicknav_core.env.constants import GOAL_DIM, LATENCY_MAX_STEPS, POSE_DIM
 
 if TYPE_CHECKING:  # pragma: no cover - import only for type checkers, keeps this module JAX-free
     from quicknav_core.env.quicknav import QuickNavEnv
     from quicknav_core.env.types import EnvParams
+    from quicknav_core.runtime import Runtime
 
 
 class RewardConfig(StrictModel):
@@ -76,7 +77,7 @@ class RewardConfig(StrictModel):
     progress: Literal["sign", "linear", "potential"] = Field(
         "sign", description="shape of the progress term: the paper's sign, a scaled distance"
         " difference, or potential-based shaping (its optimal policy is the unshaped one's)",
-        json_schema_extra=TRACED,
+        json_schema_extra=traced("progress_mode"),
     )
     potential_gamma: float = Field(
         0.99, ge=0.0, le=1.0, description="γ of the potential shaping (use the trainer's discount)",
@@ -226,8 +227,12 @@ class EnvConfig(StrictModel):
         default_factory=FloorplanConfig, description="the floor-plan generator (rooms='floorplan')"
     )
     maps: MapsConfig | None = Field(None, description="the map files (rooms='maps')")
-    room_size: float = Field(8.0, gt=0.0, le=1000.0, description="side of the square room, metres")
-    grid_size: int = Field(16, ge=4, le=128, description="cells per side (outer ring is wall)")
+    room_size: float = Field(
+        8.0, gt=0.0, le=1000.0, description="side of the square room, metres", json_schema_extra=TRACED
+    )
+    grid_size: int = Field(
+        16, ge=4, le=128, description="cells per side (outer ring is wall)", json_schema_extra=STATIC
+    )
     carve_fraction: float = Field(
         0.8, gt=0.0, le=1.0, description="fraction of inner cells carved free"
     )
@@ -251,36 +256,56 @@ class EnvConfig(StrictModel):
     test_rooms: int = Field(256, ge=1, le=1_000_000, description="rooms in the held-out test bank")
 
     # Robot
-    robot_radius: float = Field(0.15, gt=0.0, le=100.0, description="robot disc radius, metres")
-    max_wheel_speed: float = Field(
-        1.0, gt=0.0, le=100.0, description="wheel speed at |action|=1, m/s"
+    robot_radius: float = Field(
+        0.15, gt=0.0, le=100.0, description="robot disc radius, metres", json_schema_extra=TRACED
     )
-    wheel_base: float = Field(0.3, gt=0.0, le=100.0, description="distance between wheels, metres")
-    dt: float = Field(0.1, gt=0.0, le=10.0, description="control period, seconds")
+    max_wheel_speed: float = Field(
+        1.0, gt=0.0, le=100.0, description="wheel speed at |action|=1, m/s", json_schema_extra=TRACED
+    )
+    wheel_base: float = Field(
+        0.3, gt=0.0, le=100.0, description="distance between wheels, metres", json_schema_extra=TRACED
+    )
+    dt: float = Field(
+        0.1, gt=0.0, le=10.0, description="control period, seconds", json_schema_extra=TRACED
+    )
 
     # Lidar
-    lidar_beams: int = Field(16, ge=1, le=1024, description="number of lidar beams")
-    lidar_fov_deg: float = Field(
-        360.0, gt=0.0, le=360.0, description="lidar field of view, degrees"
+    lidar_beams: int = Field(
+        16, ge=1, le=1024, description="number of lidar beams", json_schema_extra=STATIC
     )
-    lidar_max_range: float = Field(10.0, gt=0.0, le=10000.0, description="lidar range cap, metres")
+    lidar_fov_deg: float = Field(
+        360.0, gt=0.0, le=360.0, description="lidar field of view, degrees", json_schema_extra=STATIC
+    )
+    lidar_max_range: float = Field(
+        10.0, gt=0.0, le=10000.0, description="lidar range cap, metres", json_schema_extra=TRACED
+    )
     lidar_method: Literal["auto", "crossings", "dda"] = Field(
         "auto",
         description="how beams are cast (same results): 'crossings' (all line crossings at once,"
         " bit-packed walls), 'dda' (a cell walk per beam); 'auto' picks the faster for the backend",
+        json_schema_extra=STATIC,
     )
 
     # Task
     goal_candidates: int = Field(
-        5, ge=1, le=64, description="random free cells drawn; the farthest becomes the goal"
+        5, ge=1, le=64, description="random free cells drawn; the farthest becomes the goal",
+        json_schema_extra=STATIC,
     )
-    goal_radius: float = Field(0.3, gt=0.0, le=100.0, description="goal disc radius, metres")
-    max_steps: int = Field(300, ge=1, le=1_000_000, description="episode truncation limit")
-    observe_goal: bool = Field(True, description="include goal position/distance/bearing in obs")
+    goal_radius: float = Field(
+        0.3, gt=0.0, le=100.0, description="goal disc radius, metres", json_schema_extra=TRACED
+    )
+    max_steps: int = Field(
+        300, ge=1, le=1_000_000, description="episode truncation limit",
+        json_schema_extra=traced("max_steps_in_episode"),
+    )
+    observe_goal: bool = Field(
+        True, description="include goal position/distance/bearing in obs", json_schema_extra=STATIC
+    )
     final_obs: bool = Field(
         True,
         description="put the pre-reset observation in info['final_obs'] (costs a 2nd lidar cast;"
         " trainers switch it off: none of them reads it)",
+        json_schema_extra=STATIC,
     )
     reward: RewardConfig = Field(default_factory=RewardConfig)
     randomize: RandomizeConfig | None = Field(
@@ -288,6 +313,21 @@ class EnvConfig(StrictModel):
         description="sensor and actuator randomisation drawn per env per episode (None: off, the"
         " plain env); see RandomizeConfig",
     )
+
+    # properties that fix compiled code besides the STATIC fields (a randomised env carries its
+    # perturbation in the state; a robot wider than a cell tests more cells for collisions)
+    DERIVED_STATIC: ClassVar[tuple[str, ...]] = ("randomized", "collision_reach")
+
+    def compile_key(self) -> tuple:
+        """What the env's compiled code depends on: the STATIC fields and DERIVED_STATIC. Envs
+        with equal keys share compiled programs (numbers and banks are traced)."""
+        names = (*static_fields(type(self)), *self.DERIVED_STATIC)
+        return tuple((name, getattr(self, name)) for name in names)
+
+    @property
+    def randomized(self) -> bool:
+        """Whether sensor and actuator randomisation is on (``randomize`` is set)."""
+        return self.randomize is not None
 
     @property
     def cell_size(self) -> float:
@@ -441,8 +481,10 @@ class EnvConfig(StrictModel):
             f" {p_max:g}, or carve_fraction <= {f_max:g}, or grid_size <= {g_max}{other}"
         )
 
-    def build(self, split: Split = "train") -> tuple[QuickNavEnv, EnvParams]:
-        """Return the gymnax environment and its params with the ``split`` room bank."""
+    def build(self, split: Split = "train", runtime: Runtime | None = None
+              ) -> tuple[QuickNavEnv, EnvParams]:  # fmt: skip
+        """Return the gymnax environment and its params with the ``split`` room bank, the banks
+        built (or found) in ``runtime`` (None: a fresh one, nothing shared)."""
         from quicknav_core.env.quicknav import build_env
 
-        return build_env(self, split)
+        return build_env(self, split, runtime)

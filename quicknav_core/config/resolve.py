@@ -96,7 +96,59 @@ class SweepRequest(StrictModel):
         return self
 
 
-class EvalRequest(StrictModel):
+class EvalFields(StrictModel):
+    """What every evaluation request holds besides the name of a trained policy: one model that
+    the library's ``EvalRequest`` and the service's eval job body both extend."""
+
+    policy: Literal["random", "oracle"] | None = Field(None, description="a baseline policy")
+    env: dict[str, Any] = Field(
+        default_factory=dict,
+        description="EnvConfig fields (dotted keys or sections) set on the policy's env: the "
+        "trained policy's own, the defaults for a baseline",
+        examples=[{"max_steps": 200}],
+    )
+    episodes: int = Field(100, ge=1, le=100_000)
+    seed: int = Field(0, ge=0, le=2**31 - 1, description="episode seed: same seed, same episodes")
+    split: Split = Field("test", description="room bank: test (held out) or train")
+    deterministic: bool = Field(True, description="act with the policy's mean, not a sample")
+    robustness: bool = Field(
+        False,
+        description="also run the episodes at fixed levels of lidar noise, beam dropout, range bias,"
+        " action latency and wheel asymmetry: success and SPL per level in eval.json's"
+        " 'robustness', drawn in robustness.png",
+    )
+    stochastic: bool | None = Field(
+        None, deprecated=True,
+        description="deprecated: the opposite of 'deterministic'; send 'deterministic' instead",
+    )  # fmt: skip
+
+    @property
+    def _stochastic(self) -> bool | None:
+        """The deprecated field as sent, read without pydantic's warning (that is for callers)."""
+        return self.__dict__.get("stochastic")
+
+    @model_validator(mode="after")
+    def _not_both_ways(self) -> EvalFields:
+        stochastic = self._stochastic
+        if (
+            stochastic is not None
+            and "deterministic" in self.model_fields_set
+            and stochastic == self.deterministic
+        ):
+            raise ValueError(
+                f"stochastic={stochastic} contradicts deterministic={self.deterministic};"
+                " send only 'deterministic' (stochastic is its deprecated opposite)"
+            )
+        return self
+
+    @property
+    def acts_deterministically(self) -> bool:
+        if "deterministic" not in self.model_fields_set and self._stochastic is not None:
+            return not self._stochastic
+        return self.deterministic
+
+
+class EvalRequest(EvalFields):
     """An evaluation request: a trained policy or a baseline.
 
     ``source`` names the trained policy and each door looks it up its own way: the service takes a
@@ -108,24 +160,6 @@ class EvalRequest(StrictModel):
         validation_alias=AliasChoices("source", "job_id", "run"),
         description="the trained policy: a train job's id (service; alias job_id) or a run folder"
         " (CLI; alias run)",
-    )
-    policy: Literal["random", "oracle"] | None = Field(None, description="a baseline policy")
-    env: dict[str, Any] = Field(
-        default_factory=dict,
-        description="EnvConfig fields (dotted keys or sections) set on the policy's env: the "
-        "run's own for a trained policy, the defaults for a baseline",
-    )
-    episodes: int = Field(100, ge=1, le=100_000)
-    seed: int = Field(0, ge=0, le=2**31 - 1, description="episode seed: same seed, same episodes")
-    split: Split = Field("test", description="room bank: test (held out) or train")
-    deterministic: bool = Field(True, description="act with the policy's mean, not a sample")
-    robustness: bool = Field(
-        False,
-        description="also evaluate at each fixed level of lidar noise, beam dropout, range bias,"
-        " action latency and wheel asymmetry (success and SPL per level; robustness.png)",
-    )
-    stochastic: bool | None = Field(
-        None, description="deprecated: the opposite of 'deterministic' (kept for one release)"
     )
 
     @model_validator(mode="before")
@@ -144,22 +178,7 @@ class EvalRequest(StrictModel):
                 "give exactly one of 'job_id' (a train job; 'source' or 'run' for a run folder)"
                 " or 'policy' (random or oracle)"
             )
-        if (
-            self.stochastic is not None
-            and "deterministic" in self.model_fields_set
-            and self.stochastic == self.deterministic
-        ):
-            raise ValueError(
-                f"stochastic={self.stochastic} contradicts deterministic={self.deterministic};"
-                " send only 'deterministic' (stochastic is its deprecated opposite)"
-            )
         return self
-
-    @property
-    def acts_deterministically(self) -> bool:
-        if "deterministic" not in self.model_fields_set and self.stochastic is not None:
-            return not self.stochastic
-        return self.deterministic
 
 
 # --------------------------------------------------------------------------- resolving

@@ -1,28 +1,26 @@
 """A batch of QuickNav envs held on the device and stepped from the host, one call per step.
 
 For serving environments to remote agents: the whole batch steps in one jit-compiled call with
-auto-reset, compiled once per (env config, batch size) and shared by every holder of that shape.
+auto-reset, compiled once per (env config, batch size) in the runtime it is given and shared by
+every holder of that shape there.
 """
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from quicknav_core.config import EnvConfig, Split
 from quicknav_core.env.rng import step_keys
+from quicknav_core.runtime import Runtime, runtime_or_new
+
+if TYPE_CHECKING:  # pragma: no cover
+    from quicknav_core.config import EnvConfig, Split
 
 __all__ = ["BatchedEnv", "StepResult", "batched_step", "env_and_params", "step_keys"]
-
-_COMPILED: dict[Any, tuple[Any, Any]] = {}
-_PARAMS: dict[Any, Any] = {}
-_BUILDING: dict[Any, threading.Lock] = {}  # one lock per (config, split) being built
-_BUILDING_GUARD = threading.Lock()
 
 
 @dataclass
@@ -76,13 +74,8 @@ def batched_step(env, keys, state, action, params, reset_capacity: int | None = 
     return obs, kept, reward, info, final
 
 
-def _compiled(env, num_envs: int, sharding):
-    """(reset, step) for this env, batch size and device layout, jit-compiled once and cached."""
-    key = (env, num_envs, sharding)
-    if key in _COMPILED:
-        return _COMPILED[key]
-    if len(_COMPILED) >= 32:
-        _COMPILED.pop(next(iter(_COMPILED)))
+def _compiled(env, num_envs: int, sharding, runtime: Runtime):
+    """(reset, step) for this env, batch size and device layout, jit-compiled once per runtime."""
 
     def reset(rng, params):
         keys = jax.random.split(rng, num_envs)
@@ -98,28 +91,18 @@ def _compiled(env, num_envs: int, sharding):
         return (counter, state, obs, reward, info["terminated"], info["truncated"],
                 info["collision"], final)  # fmt: skip
 
-    _COMPILED[key] = (jax.jit(reset), jax.jit(step, donate_argnums=(0, 1)))
-    return _COMPILED[key]
+    return runtime.program(("batched-env", env, num_envs, sharding),
+                           lambda: (jax.jit(reset), jax.jit(step, donate_argnums=(0, 1))))  # fmt: skip
 
 
-def env_and_params(config: EnvConfig, split: Split):
-    """The env and its params for a config and split (room banks built once per config)."""
-    key = (config.model_dump_json(), split)  # a config with maps holds lists: not hashable
-    if key in _PARAMS:
-        return _PARAMS[key]
-    # streams that start the same config at once wait for one build instead of each carving
-    with _BUILDING_GUARD:
-        lock = _BUILDING.setdefault(key, threading.Lock())
-    with lock:
-        if key not in _PARAMS:
-            if len(_PARAMS) >= 16:  # many distinct configs from remote agents must not grow memory
-                _PARAMS.pop(next(iter(_PARAMS)), None)
-            # final observations are part of the protocol, whatever the config says
-            _PARAMS[key] = config.model_copy(update={"final_obs": True}).build(split)
-        params = _PARAMS[key]
-    with _BUILDING_GUARD:
-        _BUILDING.pop(key, None)
-    return params
+def env_and_params(config: EnvConfig, split: Split, runtime: Runtime | None = None):
+    """The env and its params for a config and split, built once per runtime (streams that start
+    the same config at once wait for one build instead of each carving)."""
+    runtime = runtime_or_new(runtime)
+    # final observations are part of the protocol, whatever the config says
+    config = config.model_copy(update={"final_obs": True})
+    key = ("env-and-params", config.model_dump_json(), split)  # a config with maps holds lists
+    return runtime.program(key, lambda: config.build(split, runtime))
 
 
 @jax.jit
@@ -144,10 +127,12 @@ def gather_rows(x: jax.Array, idx: np.ndarray, width: int) -> np.ndarray:
 class BatchedEnv:
     """``num_envs`` auto-resetting envs on the device; ``step`` takes and returns numpy."""
 
-    def __init__(self, config: EnvConfig, num_envs: int, seed: int = 0, split: Split = "train"):
+    def __init__(self, config: EnvConfig, num_envs: int, seed: int = 0, split: Split = "train",
+                 runtime: Runtime | None = None):  # fmt: skip
+        runtime = runtime_or_new(runtime)
         self.config = config
         self.num_envs = int(num_envs)
-        self.env, self.params = env_and_params(config, split)
+        self.env, self.params = env_and_params(config, split, runtime)
         # Large batches are split over the local devices (several CPU devices when XLA is told
         # to expose one per core, several GPUs); small ones stay on one device.
         ndev = jax.local_device_count()
@@ -155,7 +140,7 @@ class BatchedEnv:
         if ndev > 1 and self.num_envs % ndev == 0 and self.num_envs >= 256 * ndev:
             mesh = jax.sharding.Mesh(np.asarray(jax.local_devices()), ("envs",))
             self._sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("envs"))
-        self._reset, self._step = _compiled(self.env, self.num_envs, self._sharding)
+        self._reset, self._step = _compiled(self.env, self.num_envs, self._sharding, runtime)
         self._rng = jax.random.PRNGKey(seed)
         self._counter = None
         self.state = None

@@ -27,9 +27,10 @@ would spend minutes of CPU and then fail (before this check: grid 48 and 64 with
 from __future__ import annotations
 
 import math
-from functools import lru_cache
 
 import numpy as np
+
+from quicknav_core.env.constants import CARVE_MOVES
 
 SLOWEST_ROOM_FACTOR = 4.0
 
@@ -44,7 +45,6 @@ AUTO_PAPER_MAX_STEPS = 2_000
 AUTO_CENTRE_MAX_STEPS = 50_000
 
 
-@lru_cache(maxsize=256)
 def occupation(grid_size: int, return_prob: float) -> np.ndarray:
     """Long-run fraction of steps the walk spends on each inner cell, ((g-2)**2,) summing to 1."""
     import scipy.sparse as sp
@@ -144,3 +144,32 @@ def largest_return_prob(grid_size: int, target: int, step_cap: int) -> float:
         mid = 0.5 * (lo + hi)
         lo, hi = (mid, hi) if feasible(grid_size, mid, target, step_cap) else (lo, mid)
     return float(f"{lo:.3g}")
+
+
+# --------------------------------------------------------------------------- the NumPy carver
+def carve_room_np(
+    rng: np.random.Generator, grid_size: int, target: int, step_cap: int, return_prob: float,
+    to_carved: bool = False,
+) -> np.ndarray:  # fmt: skip
+    """Random-walk carving in NumPy (same algorithm as ``rooms.carve_bank``; the twin's rooms). (g, g) bool, True = wall.
+
+    A return goes to the centre, or with ``to_carved`` (carver ``carved``) to a uniformly random
+    cell carved so far.
+    """
+    walls = np.ones((grid_size, grid_size), dtype=bool)
+    centre = np.array([grid_size // 2, grid_size // 2])
+    walls[centre[0], centre[1]] = False
+    carved = [centre.copy()]
+    pos, free, step = centre.copy(), 1, 0
+    while free < target and step < step_cap:
+        if rng.random() < return_prob:
+            pos = carved[rng.integers(len(carved))].copy() if to_carved else centre.copy()
+        nxt = pos + CARVE_MOVES[rng.integers(4)]
+        if np.all((nxt >= 1) & (nxt <= grid_size - 2)):
+            pos = nxt
+        if walls[pos[0], pos[1]]:
+            walls[pos[0], pos[1]] = False
+            carved.append(pos.copy())
+            free += 1
+        step += 1
+    return walls

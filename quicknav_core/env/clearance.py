@@ -84,12 +84,11 @@ def spawn_cells(rooms: np.ndarray, config, split: str) -> np.ndarray:
     return regions
 
 
-def check_fit(config) -> None:
-    """For a robot wider than a cell, build the banks and check that it fits in every room
-    (``spawn_cells``'s ValueError), before anything compiles or trains; nothing to do otherwise."""
+def check_fit(config, rooms) -> None:
+    """For a robot wider than a cell, build the banks of ``rooms`` (a room source) and check that
+    it fits in every room (``spawn_cells``'s ValueError), before anything compiles or trains;
+    nothing to do otherwise."""
     if not config.collision_reach:
         return
-    from quicknav_core.env.rooms import make_room_bank  # JAX carving
-
     for split in ("train", "test"):
-        spawn_cells(make_room_bank(config, split), config, split)
+        spawn_cells(rooms.bank(split), config, split)

@@ -34,31 +34,34 @@ IMAGE_SUFFIXES = (".pgm", ".png")
 MAX_MAP_PIXELS = 64_000_000  # 8000 x 8000: far above what an env grid can use
 MAP_ID_PREFIX = "map:"  # `map:<id>` names a map uploaded to a QuickNav service (POST /maps)
 
-# Where `map:<id>` names are read from: set by the service's processes (API, workers, Rollout
-# server) to a function that returns the stored map's local .yaml, fetched from the artifact store.
-_map_resolver: Callable[[str], Path] | None = None
-
-
-def set_map_resolver(resolve: Callable[[str], Path] | None) -> None:
-    """Let ``map:<id>`` names be read: ``resolve(id)`` returns the stored map's local .yaml."""
-    global _map_resolver
-    _map_resolver = resolve
-
-
 def is_map_id(name: str) -> bool:
     return name.startswith(MAP_ID_PREFIX)
 
 
-def map_path(name: str) -> Path:
-    """The local file a map name stands for: a path as given, or a stored map's .yaml."""
+def map_path(name: str, resolver: Callable[[str], Path] | None = None) -> Path:
+    """The local file a map name stands for: a path as given, or a stored map's .yaml, which
+    ``resolver(id)`` (a service's, ``Runtime.map_resolver``) fetches."""
     if not is_map_id(name):
         return Path(name)
     map_id = name[len(MAP_ID_PREFIX):]
-    if _map_resolver is None:
+    if resolver is None:
         raise MapError(f"{name}: names a map uploaded to a QuickNav service, which only that"
                        " service's jobs can read; give a file path here (download the map with"
                        " `quicknav maps show ID --download DIR`)")  # fmt: skip
-    return _map_resolver(map_id)
+    return resolver(map_id)
+
+
+def map_parts(path: Path) -> list[Path]:
+    """The files a map is read from (a YAML and its image)."""
+    if path.suffix.lower() in YAML_SUFFIXES and path.is_file():
+        try:
+            import yaml
+
+            doc = yaml.safe_load(path.read_text())
+            return [path, path.parent / str(doc["image"])]
+        except Exception:  # a broken YAML: loading it says what is wrong
+            return [path]
+    return [path]
 
 
 class MapError(ValueError):

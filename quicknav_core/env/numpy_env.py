@@ -18,56 +18,31 @@ env's to float32 rounding.
 from __future__ import annotations
 
 import copy
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import gymnasium as gym
 import numpy as np
 
-from quicknav_core.config.env import EnvConfig
+from quicknav_core.env.carving import carve_room_np  # noqa: F401 (the twin's carver, as before)
 from quicknav_core.env.clearance import reach_cells, spawn_region
 from quicknav_core.env.constants import (
     BIG,
-    CARVE_MOVES,
     HIT_GOAL,
     HIT_NONE,
     HIT_WALL,
     LATENCY_MAX_STEPS,
-    SPLIT_STREAM,
     beam_angles,
     check_split,
     observation_bounds,
 )
 
+if TYPE_CHECKING:  # pragma: no cover - the twin reads its config's fields, never imports it
+    from quicknav_core.config.env import EnvConfig
+    from quicknav_core.env.room_sources import RoomSource
+    from quicknav_core.runtime import Runtime
+
 f32 = np.float32
 _BIG = f32(BIG)
-
-
-def carve_room_np(
-    rng: np.random.Generator, grid_size: int, target: int, step_cap: int, return_prob: float,
-    to_carved: bool = False,
-) -> np.ndarray:  # fmt: skip
-    """Random-walk carving (same algorithm as ``rooms.carve_bank``). (g, g) bool, True = wall.
-
-    A return goes to the centre, or with ``to_carved`` (carver ``carved``) to a uniformly random
-    cell carved so far.
-    """
-    walls = np.ones((grid_size, grid_size), dtype=bool)
-    centre = np.array([grid_size // 2, grid_size // 2])
-    walls[centre[0], centre[1]] = False
-    carved = [centre.copy()]
-    pos, free, step = centre.copy(), 1, 0
-    while free < target and step < step_cap:
-        if rng.random() < return_prob:
-            pos = carved[rng.integers(len(carved))].copy() if to_carved else centre.copy()
-        nxt = pos + CARVE_MOVES[rng.integers(4)]
-        if np.all((nxt >= 1) & (nxt <= grid_size - 2)):
-            pos = nxt
-        if walls[pos[0], pos[1]]:
-            walls[pos[0], pos[1]] = False
-            carved.append(pos.copy())
-            free += 1
-        step += 1
-    return walls
 
 
 def cast_lidar_np(
@@ -182,12 +157,15 @@ class QuickNavNumpyEnv(gym.Env):
 
     def __init__(
         self,
-        config: EnvConfig | None = None,
+        config: EnvConfig,
         split: str = "train",
         render_mode: str | None = None,
-        rooms: np.ndarray | None = None,
+        rooms: np.ndarray | RoomSource | None = None,
+        runtime: Runtime | None = None,
     ):
-        self.config = config or EnvConfig()
+        from quicknav_core.env.room_sources import RoomSource, room_source
+
+        self.config = config
         self.split = check_split(split)
         self.render_mode = render_mode
         low, high = observation_bounds(self.config)
@@ -199,7 +177,10 @@ class QuickNavNumpyEnv(gym.Env):
         self._angles = beam_angles(c.lidar_beams, c.lidar_fov_deg)
         self._rooms: dict[int, np.ndarray] = {}
         self._bank_size = self.config.train_rooms if split == "train" else self.config.test_rooms
-        if rooms is not None:
+        self._source: RoomSource | None = None
+        if isinstance(rooms, RoomSource):
+            self._source = rooms
+        elif rooms is not None:
             # a given bank (e.g. the JAX env's ``params.rooms``): reset picks from these rooms
             rooms = np.asarray(rooms, dtype=bool)
             g = self.config.grid_size
@@ -207,24 +188,15 @@ class QuickNavNumpyEnv(gym.Env):
                 raise ValueError(f"rooms has shape {rooms.shape}; expected (n, {g}, {g})")
             self._rooms = dict(enumerate(rooms))
             self._bank_size = len(rooms)
+        else:  # the config's room source (carved rooms: carved here with NumPy, room by room)
+            self._source = room_source(c, runtime)
         self._state: dict[str, Any] | None = None
 
     # ---------------------------------------------------------------- rooms
     def room(self, index: int) -> np.ndarray:
-        """Room ``index`` of the bank: a given one, or carved on first use (NumPy RNG streams)."""
-        if index not in self._rooms and self.config.rooms != "carved":
-            from quicknav_core.env.room_sources import source_bank
-
-            c = self.config
-            train = source_bank(c, "train") if self.split == "test" and c.rooms == "floorplan" else None
-            self._rooms.update(enumerate(source_bank(c, self.split, train=train)))
+        """Room ``index`` of the bank: a given one, or its source's (built on first use)."""
         if index not in self._rooms:
-            c = self.config
-            rng = np.random.default_rng([c.room_seed, SPLIT_STREAM[self.split], index])
-            self._rooms[index] = carve_room_np(
-                rng, c.grid_size, c.carve_target, c.carve_step_cap, c.return_prob,
-                to_carved=c.resolved_carver == "carved",
-            )  # fmt: skip
+            self._rooms[index] = self._source.twin_room(self.split, index)
         return self._rooms[index]
 
     # ---------------------------------------------------------------- gymnasium API

@@ -23,13 +23,15 @@ from quicknav_core.env.perturb import (
     perturb_scan,
     randomize_numbers,
 )
-from quicknav_core.env.reward import reward_numbers, reward_terms, total_reward
+from quicknav_core.env.reward import reward_terms, total_reward
 from quicknav_core.env.rng import hash_key_bits, uniform_from_bits
-from quicknav_core.env.rooms import free_cell_table, make_room_bank
+from quicknav_core.env.room_sources import RoomSource, free_cell_table, room_source
 from quicknav_core.env.types import EnvParams, EnvState, Perturbation
+from quicknav_core.markers import traced_values
 
 if TYPE_CHECKING:  # pragma: no cover - the env reads its config's fields, never imports the module
     from quicknav_core.config import EnvConfig, Split
+    from quicknav_core.runtime import Runtime
 
 
 class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
@@ -56,14 +58,16 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
     ``transition`` (drive, collide, reward; lidar left stale), ``spawn`` (a fresh episode, lidar
     not cast) and ``with_lidar`` (cast the lidar for a state's pose).
 
-    >>> env, params = EnvConfig(grid_size=8).build("train")
+    >>> env, params = EnvConfig(grid_size=8).build("train")  # a Runtime shares banks: build("train", rt)
     >>> obs, state = env.reset(jax.random.PRNGKey(0), params)
     >>> obs, state, reward, done, info = env.step(jax.random.PRNGKey(1), state, jnp.ones(2), params)
     """
 
-    def __init__(self, config: EnvConfig):
+    def __init__(self, config: EnvConfig, rooms: RoomSource | None = None):
         super().__init__()
         self.config = config
+        # where the room banks come from (the env never asks which source it is)
+        self.rooms = rooms if rooms is not None else room_source(config)
         self.grid_size = config.grid_size
         self.num_beams = config.lidar_beams
         self.observe_goal = config.observe_goal
@@ -72,14 +76,12 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         self.reach = config.collision_reach  # 0: narrower than a cell (the four-cell test)
 
     # Identity: jit treats the env as a static argument. Two envs are the same static argument
-    # when their compiled code is the same: the fields that fix shapes and code paths. Numbers
-    # (rewards, speeds, radii, the room bank) live in EnvParams, so configs that differ only in
-    # them share compiled code.
+    # when their compiled code is the same: the config's compile key (its STATIC fields and what
+    # derives from them). Numbers (rewards, speeds, radii) and the room bank live in EnvParams, so
+    # configs that differ only in them share compiled code.
     @property
     def static_key(self) -> tuple:
-        c = self.config
-        return (c.grid_size, c.lidar_beams, c.lidar_fov_deg, c.lidar_method, c.goal_candidates,
-                c.observe_goal, c.final_obs, self.randomized, self.reach)  # fmt: skip
+        return self.config.compile_key()
 
     def __hash__(self) -> int:
         return hash(("QuickNavEnv", self.static_key))
@@ -97,7 +99,7 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
 
     @cached_property
     def _default_params(self) -> EnvParams:
-        return make_params(self.config, "train")
+        return make_params(self.config, "train", self.rooms)
 
     @property
     def default_params(self) -> EnvParams:
@@ -394,32 +396,35 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         return state.replace(lidar_ranges=ranges, lidar_hits=hits)
 
 
-def make_params(config: EnvConfig, split: Split = "train") -> EnvParams:
-    """EnvParams for ``config`` holding the ``split`` room bank."""
-    rooms = make_room_bank(config, check_split(split))
-    free, counts = free_cell_table(~spawn_cells(rooms, config, split))
-    f32 = np.float32
+def traced_numbers(config: EnvConfig) -> dict[str, Any]:
+    """The ``EnvParams`` numbers of a config: every field marked traced, of the env and its reward
+    (``markers.traced_values``), and the randomisation ranges. Declared on the fields, so
+    configs that differ only in these share compiled code and vmap side by side."""
+    values = {**traced_values(config), **traced_values(config.reward)}
+    numbers = {k: np.int32(v) if isinstance(v, int) else np.float32(v) for k, v in values.items()}
+    return {**numbers, "randomize": randomize_numbers(config)}
+
+
+def make_params(config: EnvConfig, split: Split = "train", rooms: RoomSource | None = None
+                ) -> EnvParams:  # fmt: skip
+    """EnvParams for ``config`` holding the ``split`` bank of ``rooms`` (default: the config's
+    room source in a fresh runtime)."""
+    source = rooms if rooms is not None else room_source(config)
+    bank = source.bank(check_split(split))
+    free, counts = free_cell_table(~spawn_cells(bank, config, split))
     return EnvParams(
-        rooms=jnp.asarray(rooms),
-        room_col_bits=jnp.asarray(pack_rows_np(np.swapaxes(rooms, 1, 2))),
-        room_row_bits=jnp.asarray(pack_rows_np(rooms)),
+        rooms=jnp.asarray(bank),
+        room_col_bits=jnp.asarray(pack_rows_np(np.swapaxes(bank, 1, 2))),
+        room_row_bits=jnp.asarray(pack_rows_np(bank)),
         free_cells=jnp.asarray(free),
         num_free=jnp.asarray(counts),
-        room_size=f32(config.room_size),
-        robot_radius=f32(config.robot_radius),
-        max_wheel_speed=f32(config.max_wheel_speed),
-        wheel_base=f32(config.wheel_base),
-        dt=f32(config.dt),
-        lidar_max_range=f32(config.lidar_max_range),
-        goal_radius=f32(config.goal_radius),
-        max_steps_in_episode=np.int32(config.max_steps),
-        **reward_numbers(config.reward),
-        randomize=randomize_numbers(config),
+        **traced_numbers(config),
     )
 
 
-def build_env(config: EnvConfig, split: Split = "train") -> tuple[QuickNavEnv, EnvParams]:
+def build_env(config: EnvConfig, split: Split = "train", runtime: Runtime | None = None
+              ) -> tuple[QuickNavEnv, EnvParams]:  # fmt: skip
     """The env and its params for one split (``EnvConfig.build`` calls this)."""
-    env = QuickNavEnv(config)
-    params = env.default_params if split == "train" else make_params(config, check_split(split))
+    env = QuickNavEnv(config, room_source(config, runtime))
+    params = env.default_params if split == "train" else make_params(config, check_split(split), env.rooms)
     return env, params

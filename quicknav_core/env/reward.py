@@ -1,36 +1,11 @@
-"""The paper's reward, term by term, and the reward weights as traced ``EnvParams`` numbers."""
+"""The paper's reward, term by term, from the traced reward weights in ``EnvParams``."""
 
 from __future__ import annotations
 
-from typing import Any
-
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from quicknav_core.env.types import EnvParams
-
-PROGRESS_MODES = ("sign", "linear", "potential")
-
-
-def reward_numbers(reward: Any) -> dict[str, np.ndarray]:
-    """The ``EnvParams`` fields of a ``RewardConfig``: one place maps config to traced numbers.
-
-    Every traced field of ``RewardConfig`` has its entry here (a test checks it), so trials that
-    differ only in reward weights can train side by side on one compiled program.
-    """
-    f32 = np.float32
-    return {
-        "step_penalty": f32(reward.step_penalty),
-        "collision_penalty": f32(reward.collision_penalty),
-        "cycle_penalty": f32(reward.cycle_penalty),
-        "progress_reward": f32(reward.progress_reward),
-        "goal_reward": f32(reward.goal_reward),
-        "cycle_cap": np.int32(reward.cycle_cap),
-        "exploration_reward": f32(reward.exploration_reward),
-        "progress_mode": np.int32(PROGRESS_MODES.index(reward.progress)),
-        "potential_gamma": f32(reward.potential_gamma),
-    }
 
 
 def reward_terms(

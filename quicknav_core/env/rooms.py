@@ -36,12 +36,9 @@ train room are dropped, so evaluation is on rooms never seen in training.
 
 from __future__ import annotations
 
-import hashlib
-import json
 import os
 from concurrent.futures import ThreadPoolExecutor
 from functools import partial
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 import jax
@@ -49,7 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from quicknav_core.env.carving import CARVERS
-from quicknav_core.env.constants import CARVE_MOVES, SPLIT_STREAM, check_split
+from quicknav_core.env.constants import CARVE_MOVES, SPLIT_STREAM
 from quicknav_core.env.rng import counter_bits, key_word
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -231,13 +228,14 @@ def _carve_numbered(config: EnvConfig, split: Split, start: int, count: int) -> 
         return np.concatenate(list(pool.map(carve, range(parts))))[:count]
 
 
-def _first_rooms(config: EnvConfig, split: Split, count: int, skip: set[bytes] | None = None,
-                 batch: int | None = None) -> np.ndarray:  # fmt: skip
+def carve_first_rooms(config: EnvConfig, split: Split, count: int,
+                      skip: set[bytes] | None = None) -> np.ndarray:
     """The first ``count`` rooms of a split's stream that reached the carve target (and are not
     in ``skip``). A room the walk left short (it ran into the step cap) is passed over, so a bank
     is the same whenever every room makes it; ``EnvConfig`` refuses configs where many would not."""
     kept: list[np.ndarray] = []
-    start, batch = 0, batch or count
+    # a test bank skips train layouts: carve a few more than it keeps
+    start, batch = 0, count if skip is None else max(64, count)
     short = repeated = 0
     while len(kept) < count and start < 2 * count + 256:
         for room in _carve_numbered(config, split, start, batch):
@@ -265,116 +263,3 @@ def _first_rooms(config: EnvConfig, split: Split, count: int, skip: set[bytes] |
             " far on large grids)"
         )
     return np.stack(kept)
-
-
-def make_room_bank(config: EnvConfig, split: Split) -> np.ndarray:
-    """Generate the ``split`` room bank: (rooms, grid, grid) bool, ``True`` = wall.
-
-    The test bank skips any layout that also occurs in the train bank; if the grid is so small that
-    not enough distinct held-out layouts exist, a ``ValueError`` says so. With a bank cache set
-    (``set_bank_cache``), a bank built once is read back instead of carved again.
-    """
-    global _last_train
-    check_split(split)
-    cached = _cache_read(config, split)
-    if cached is not None:
-        return cached
-    if config.rooms != "carved":  # generated floor plans or maps (NumPy, shared with the twin)
-        from quicknav_core.env.room_sources import source_bank
-
-        train = make_room_bank(config, "train") if split == "test" else None
-        bank = source_bank(config, split, train=train)
-        _cache_write(config, split, bank)
-        return bank
-    if split == "train":
-        key, last = bank_key(config, "train"), _last_train
-        if last is not None and last[0] == key:
-            return last[1].copy()
-        bank = _first_rooms(config, "train", config.train_rooms)
-        if bank.nbytes <= _LAST_TRAIN_MAX_BYTES:
-            _last_train = (key, bank.copy())
-    else:
-        train = make_room_bank(config, "train")
-        seen = {room.tobytes() for room in train}
-        bank = _first_rooms(config, "test", config.test_rooms, skip=seen,
-                            batch=max(64, config.test_rooms))  # fmt: skip
-    _cache_write(config, split, bank)
-    return bank
-
-
-# The last train bank built, kept in memory: a test bank needs it (to skip its rooms), and callers
-# usually build the train bank just before (``EnvConfig.build`` per split, the trainer's eval).
-_last_train: tuple[str, np.ndarray] | None = None
-_LAST_TRAIN_MAX_BYTES = 64 * 2**20
-
-
-# --------------------------------------------------------------------------- bank cache
-_BANK_CACHE: Path | None = None
-# bumped whenever carving changes what a config's bank holds (2: ``EnvConfig.carver``; the
-# ``paper`` carver's banks are those of version 1, bit for bit)
-GENERATOR_VERSION = 2
-
-
-def set_bank_cache(folder: Path | str | None) -> None:
-    """Keep built room banks in ``folder`` (None: no disk cache). A process that serves many jobs
-    or rollout sessions (the service's workers) sets it once; library code never does."""
-    global _BANK_CACHE
-    _BANK_CACHE = Path(folder) if folder is not None else None
-
-
-def bank_key(config: EnvConfig, split: Split) -> str:
-    """What a bank depends on, as a file-name-safe digest."""
-    fields = ("grid_size", "carve_fraction", "return_prob", "carve_step_cap", "room_seed",
-              "train_rooms", "test_rooms", "resolved_carver")  # fmt: skip
-    parts = [GENERATOR_VERSION, split, *(getattr(config, f) for f in fields)]
-    if config.rooms != "carved":
-        from quicknav_core.env.room_sources import source_key
-
-        parts += source_key(config, split)
-    text = json.dumps(parts)
-    return hashlib.sha256(text.encode()).hexdigest()[:32]
-
-
-def _cache_path(config: EnvConfig, split: Split) -> Path | None:
-    if _BANK_CACHE is None:
-        return None
-    return _BANK_CACHE / f"bank-{config.grid_size}-{split}-{bank_key(config, split)}.npz"
-
-
-def _cache_read(config: EnvConfig, split: Split) -> np.ndarray | None:
-    path = _cache_path(config, split)
-    if path is None or not path.exists():
-        return None
-    try:
-        with np.load(path) as data:
-            bits, shape = data["bits"], tuple(int(v) for v in data["shape"])
-        bank = np.unpackbits(bits, count=int(np.prod(shape))).reshape(shape).astype(bool)
-    except (OSError, ValueError, KeyError):
-        return None  # damaged: carve it again
-    g = config.grid_size
-    expected = config.train_rooms if split == "train" else config.test_rooms
-    return bank if bank.shape == (expected, g, g) else None
-
-
-def _cache_write(config: EnvConfig, split: Split, bank: np.ndarray) -> None:
-    path = _cache_path(config, split)
-    if path is None:
-        return
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
-        with open(tmp, "wb") as f:
-            np.savez(f, bits=np.packbits(bank.reshape(-1)), shape=np.asarray(bank.shape))
-        os.replace(tmp, path)
-    except OSError:
-        pass  # a cache that cannot be written (a full disk) only costs a rebuild
-
-
-def free_cell_table(rooms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Flat indices of the free cells of every room, padded: ((n, g*g) int32, (n,) int32 counts)."""
-    n, g, _ = rooms.shape
-    flat_free = ~rooms.reshape(n, g * g)
-    counts = flat_free.sum(axis=1).astype(np.int32)
-    # Stable argsort puts free cells (key 0) first in increasing index order.
-    order = np.argsort(~flat_free, axis=1, kind="stable").astype(np.int32)
-    return order, counts

@@ -6,5 +6,5 @@
     pictures.py   trajectories.png, difficulty.png, episodes.gif (a failure is a warning)
     agents.py     the Agent interface, a trained policy as an agent (agent_from_run)
     scripted.py   the random and oracle baselines
-    planning.py   shortest collision-free disc paths, the oracle controller
+    planning.py   the oracle controller (on the planner of env.plan)
 """

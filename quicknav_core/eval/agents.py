@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from quicknav_core.config import EnvConfig
+from quicknav_core.runtime import Runtime
 
 
 class Agent:
@@ -58,13 +59,14 @@ class PolicyAgent(Agent):
         return self._policy(payload).act(carry, obs, start, key, deterministic)
 
 
-def agent_from_run(path: Path) -> tuple[Agent, EnvConfig, dict[str, Any]]:
+def agent_from_run(path: Path, runtime: Runtime | None = None
+                   ) -> tuple[Agent, EnvConfig, dict[str, Any]]:  # fmt: skip
     """The trained policy of a run folder (or its checkpoint folder), with the run's env config."""
-    from quicknav_core.train.run import CHECKPOINT_DIR, load_run
+    from quicknav_core.layout import RunFolder
+    from quicknav_core.train.run import load_run
 
-    path = Path(path)
-    run_dir = path.parent if path.name == CHECKPOINT_DIR else path
-    config, trainer, state, meta = load_run(run_dir)
+    run_dir = RunFolder.of(path).path
+    config, trainer, state, meta = load_run(run_dir, runtime=runtime)
     return (
         # a run folder named by a job id is shown by its first 8 characters, as the CLI shows ids
         PolicyAgent(trainer.policy(state), name=f"{config.trainer_kind}:{run_dir.name[:16]}"),

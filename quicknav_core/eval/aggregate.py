@@ -9,13 +9,12 @@ resampling is SciPy's ``scipy.stats.bootstrap`` (one sample per episode, ``paire
 percentile intervals as in rliable); nothing here draws resamples by hand.
 
 ``performance_profile`` gives, for thresholds τ, the fraction of (seed, episode) scores above τ
-with the same stratified intervals; ``draw_profiles`` plots them for several rows.
+with the same stratified intervals; ``eval.pictures.draw_profiles`` plots them for several rows.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from pathlib import Path
+from collections.abc import Callable
 
 import numpy as np
 from scipy import stats
@@ -96,45 +95,3 @@ def performance_profile(
     low = np.minimum(point, np.clip(res.confidence_interval.low, 0.0, 1.0))
     high = np.maximum(point, np.clip(res.confidence_interval.high, 0.0, 1.0))
     return point, low, high
-
-
-def draw_profiles(
-    panels: Sequence[tuple[str, Sequence[tuple[str, np.ndarray, bool]]]],
-    path: Path,
-    xlabel: str = "SPL threshold τ",
-) -> Path:
-    """One panel per (title, rows); a row is (label, (seeds, episodes) scores in [0, 1], dashed).
-    Each curve is the fraction of runs x episodes with a score above τ, its band the 95 % interval;
-    rows labelled as a baseline are drawn in grey."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    taus = np.linspace(0.0, 1.0, 101)
-    fig, axes = plt.subplots(1, len(panels), figsize=(6.2 * len(panels), 4.4), squeeze=False)
-    for ax, (title, rows) in zip(axes[0], panels, strict=True):
-        for i, (label, scores, dashed) in enumerate(rows):
-            point, lo, hi = performance_profile(scores, taus)
-            colour = "0.45" if "baseline" in label else f"C{i % 10}"
-            n = np.asarray(scores).shape[0]
-            ax.plot(taus, point, color=colour, linestyle="--" if dashed else "-",
-                    label=f"{label} ({n} seed{'s' if n != 1 else ''})")  # fmt: skip
-            if not np.isnan(lo).all():
-                ax.fill_between(taus, lo, hi, color=colour, alpha=0.15, linewidth=0)
-        ax.set_title(title)
-        ax.set_xlabel(xlabel)
-        ax.set_ylabel("fraction of seeds x episodes with score > τ")
-        ax.set_xlim(0, 1)
-        ax.set_ylim(0, 1.02)
-        ax.grid(alpha=0.3)
-        if rows:
-            ax.legend(fontsize=7, loc="lower left")
-        else:
-            ax.text(0.5, 0.5, "no row with per-episode scores yet", ha="center", va="center")
-    fig.suptitle("Performance profiles (held-out test bank; bands: stratified bootstrap 95 %)")
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path

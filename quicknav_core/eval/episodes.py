@@ -18,8 +18,9 @@ import numpy as np
 
 from quicknav_core.config import EnvConfig, EvalConfig
 from quicknav_core.config.eval import EVAL_BATCH
+from quicknav_core.env.plan import shortest_path_length
 from quicknav_core.eval.agents import Agent
-from quicknav_core.eval.planning import shortest_path_length
+from quicknav_core.runtime import Runtime, runtime_or_new
 
 __all__ = ["Episodes", "EvalStopped", "replay_data", "run_episodes"]
 
@@ -41,9 +42,6 @@ class Episodes:
     gif: dict[str, np.ndarray]  # first G episodes: theta, lidar ranges/hits per step
 
 
-_RUNNERS: dict[Any, Any] = {}
-
-
 class EvalStopped(Exception):
     """``progress`` asked to stop between batches; ``done`` episodes of ``total`` had run."""
 
@@ -53,11 +51,15 @@ class EvalStopped(Exception):
         self.total = total
 
 
-def _runner(env, agent: Agent, batch: int, gif: int, deterministic: bool):
-    """The compiled evaluation of ``batch`` episodes: f(keys, act_keys, env_params, payload)."""
-    cache_key = (env, agent.static_key(), batch, gif, deterministic)
-    if cache_key in _RUNNERS:
-        return _RUNNERS[cache_key]
+def _runner(env, agent: Agent, batch: int, gif: int, deterministic: bool, runtime: Runtime):
+    """The compiled evaluation of ``batch`` episodes: f(keys, act_keys, env_params, payload),
+    compiled once per runtime for agents with the same static key."""
+    cache_key = ("eval-episodes", env, agent.static_key(), batch, gif, deterministic)
+    return runtime.program(cache_key, lambda: jax.jit(_episodes_program(env, agent, batch, gif,
+                                                                        deterministic)))  # fmt: skip
+
+
+def _episodes_program(env, agent: Agent, batch: int, gif: int, deterministic: bool):
     n, g = batch, gif
 
     def run(keys, act_keys, params, payload):
@@ -106,15 +108,15 @@ def _runner(env, agent: Agent, batch: int, gif: int, deterministic: bool):
         return (states.pos, states.walls, states.goal, ref, steps, ret, coll, plen, success,
                 trunc, pos, theta, ranges, hits, actions, first)  # fmt: skip
 
-    _RUNNERS[cache_key] = jax.jit(run)
-    return _RUNNERS[cache_key]
+    return run
 
 
 def run_episodes(
     env, params, agent: Agent, cfg: EvalConfig,
-    progress: Callable[[int, int], bool | None] | None = None,
+    progress: Callable[[int, int], bool | None] | None = None, runtime: Runtime | None = None,
 ) -> Episodes:  # fmt: skip
-    """Run ``cfg.episodes`` fixed-seed episodes of ``agent``, ``EVAL_BATCH`` at a time.
+    """Run ``cfg.episodes`` fixed-seed episodes of ``agent``, ``EVAL_BATCH`` at a time (the
+    compiled program kept in ``runtime``; without one it is compiled for this call).
 
     Episode i starts from ``reset(fold_in(PRNGKey(seed), i))`` whatever the batch; a stochastic
     agent's per-step keys are those of the one-batch evaluation in the first batch and fold in the
@@ -126,7 +128,7 @@ def run_episodes(
     g_total = min(cfg.gif_episodes, n)
     g = min(g_total, batch)
     t_max = int(env.config.max_steps)
-    runner = _runner(env, agent, batch, g, cfg.deterministic)
+    runner = _runner(env, agent, batch, g, cfg.deterministic, runtime_or_new(runtime))
     base = jax.random.PRNGKey(cfg.seed)
     act_base = jax.random.fold_in(base, 2**30)
     parts: list[tuple] = []
@@ -162,20 +164,20 @@ def run_episodes(
     )  # fmt: skip
 
 
-def _map_placements(config: EnvConfig) -> dict[str, Any]:
+def _map_placements(config: EnvConfig, runtime: Runtime | None) -> dict[str, Any]:
     """For maps: where each map's picture lies in the room (its lower-left corner at cell (1, 1),
     its size in metres), and under ``_rooms`` each map's wall grid."""
-    if config.rooms != "maps":
-        return {}
-    from quicknav_core.env.maps import load_map, map_path
-    from quicknav_core.env.room_sources import map_files, map_rooms
+    from quicknav_core.env.maps import load_map
+    from quicknav_core.env.room_sources import MapRooms, room_source
 
+    source = room_source(config, runtime)
+    if not isinstance(source, MapRooms):
+        return {}
     out: dict[str, Any] = {"_rooms": {}}
+    read = {k: v for k, v in source.read_options().items() if k != "unknown_free"}
     for split in ("train", "test"):
-        read = {"resolution": config.maps.resolution, "occupied_thresh": config.maps.occupied_thresh,
-                "free_thresh": config.maps.free_thresh, "negate": config.maps.negate}  # fmt: skip
-        for name, room in zip(map_files(config, split), map_rooms(config, split), strict=True):
-            m = load_map(map_path(name), **read)
+        for name, room in zip(source.files(split), source.rooms(split), strict=True):
+            m = load_map(source.path(name), **read)
             width_m, height_m = m.size_m
             out[name] = {"x0": config.cell_size, "y0": config.cell_size,
                          "width_m": round(width_m, 6), "height_m": round(height_m, 6)}  # fmt: skip
@@ -183,7 +185,8 @@ def _map_placements(config: EnvConfig) -> dict[str, Any]:
     return out
 
 
-def replay_data(ep: Episodes, config: EnvConfig, agent_name: str) -> dict[str, Any]:
+def replay_data(ep: Episodes, config: EnvConfig, agent_name: str, runtime: Runtime | None = None
+                ) -> dict[str, Any]:  # fmt: skip
     """The picture episodes step by step, for the browser's replay (``replay.json``): walls as
     rows of '#'/'.' (row = y), poses and lidar ranges rounded to millimetres, hit codes."""
     from quicknav_core.env.constants import HIT_GOAL, HIT_NONE, HIT_WALL, beam_angles
@@ -205,7 +208,7 @@ def replay_data(ep: Episodes, config: EnvConfig, agent_name: str) -> dict[str, A
             "ranges": np.round(ep.gif["lidar_ranges"][i, :n], 3).tolist(),
             "hits": ep.gif["lidar_hits"][i, :n].astype(int).tolist(),
         })  # fmt: skip
-    maps = _map_placements(config)
+    maps = _map_placements(config, runtime)
     if maps:  # which map each episode drove in (its walls are that map's room)
         rooms = {name: room.tobytes() for name, room in maps.pop("_rooms").items()}
         for e, walls in zip(episodes, ep.walls, strict=False):

@@ -27,6 +27,8 @@ from quicknav_core.eval.statistics import (
     summarize,
     wilson_interval,
 )
+from quicknav_core.layout import EVAL
+from quicknav_core.runtime import Runtime, runtime_or_new
 
 __all__ = ["PATH_BIN_EDGES", "Agent", "Episodes", "EvalStopped", "PolicyAgent", "agent_from_run",
            "by_path_length", "draw_all", "draw_difficulty", "draw_gif", "draw_trajectories",
@@ -36,9 +38,9 @@ __all__ = ["PATH_BIN_EDGES", "Agent", "Episodes", "EvalStopped", "PolicyAgent", 
 
 def evaluate(
     env_config: EnvConfig, agent: Agent, cfg: EvalConfig, out_dir: Path | None = None,
-    progress: Callable[[int, int], bool | None] | None = None,
+    progress: Callable[[int, int], bool | None] | None = None, runtime: Runtime | None = None,
 ) -> tuple[dict[str, Any], Episodes]:  # fmt: skip
-    """Evaluate ``agent``; with ``out_dir`` write eval.json (with success and SPL per difficulty
+    """Evaluate ``agent`` (banks and compiled programs from ``runtime``); with ``out_dir`` write eval.json (with success and SPL per difficulty
     bin), replay.json, trajectories.png, difficulty.png and episodes.gif. With ``cfg.robustness``
     the same episodes also run at each perturbation level (``eval.robustness``): eval.json's
     ``robustness`` rows and robustness.png.
@@ -47,10 +49,11 @@ def evaluate(
     (``EvalStopped``: nothing is written). The numbers are written before the pictures; a picture
     that fails is left out and named in the result's ``warnings`` (always present, in eval.json too).
     """
-    env, params = env_config.build(cfg.split)
+    runtime = runtime_or_new(runtime)
+    env, params = env_config.build(cfg.split, runtime)
     total = cfg.episodes * (1 + len(robustness_levels(env_config)) if cfg.robustness else 1)
     report = None if progress is None else (lambda done, _n: progress(done, total))
-    ep = run_episodes(env, params, agent, cfg, report)
+    ep = run_episodes(env, params, agent, cfg, report, runtime)
     step_length = env_config.max_wheel_speed * env_config.dt
     result = {
         "agent": agent.name,
@@ -70,19 +73,19 @@ def evaluate(
     }
     if cfg.robustness:
         later = None if progress is None else (lambda done, _n: progress(cfg.episodes + done, total))
-        result["robustness"] = run_robustness(env_config, agent, cfg, later, params)
+        result["robustness"] = run_robustness(env_config, agent, cfg, later, params, runtime)
     if out_dir is not None:
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
-        write_json(out_dir / "eval.json", result)
+        write_json(out_dir / EVAL.result, result)
         if ep.gif["theta"].shape[0]:
-            write_json(out_dir / "replay.json", replay_data(ep, env_config, agent.name), indent=None)
+            write_json(out_dir / EVAL.replay, replay_data(ep, env_config, agent.name, runtime), indent=None)
         if cfg.pictures:
             result["warnings"] = draw_all(ep, env_config, result["by_path_length"], out_dir,
                                           agent.name, gif=bool(cfg.gif_episodes),
                                           robustness=result.get("robustness"))  # fmt: skip
             if result["warnings"]:
-                write_json(out_dir / "eval.json", result)
+                write_json(out_dir / EVAL.result, result)
     return result, ep
 
 
@@ -92,7 +95,8 @@ def write_json(path: Path, value: Any, indent: int | None = 2) -> None:
     path.write_text(json.dumps(json_safe(value), indent=indent, allow_nan=False))
 
 
-def make_agent(cfg: EvalConfig, run_dir: Path | str | None = None) -> tuple[Agent, EnvConfig]:
+def make_agent(cfg: EvalConfig, run_dir: Path | str | None = None, runtime: Runtime | None = None
+               ) -> tuple[Agent, EnvConfig]:  # fmt: skip
     """The agent an EvalConfig names and the env it runs in: a baseline in ``cfg.env`` (default
     env if unset), or the trained policy of ``run_dir`` (default: ``cfg.source`` read as a run
     folder) in ``cfg.env`` or else the run's own env."""
@@ -102,14 +106,15 @@ def make_agent(cfg: EvalConfig, run_dir: Path | str | None = None) -> tuple[Agen
     where = run_dir if run_dir is not None else cfg.source
     if where is None:
         raise ValueError("policy='trained' needs a source: the run folder of the trained policy")
-    agent, run_env, _ = agent_from_run(Path(where))
+    agent, run_env, _ = agent_from_run(Path(where), runtime)
     return agent, cfg.env or run_env
 
 
 def run_eval(
     cfg: EvalConfig, out_dir: Path | None = None, run_dir: Path | str | None = None,
-    progress: Callable[[int, int], bool | None] | None = None,
+    progress: Callable[[int, int], bool | None] | None = None, runtime: Runtime | None = None,
 ) -> tuple[dict[str, Any], Episodes]:  # fmt: skip
     """Evaluate what a (resolved) EvalConfig names; see ``make_agent`` and ``evaluate``."""
-    agent, env = make_agent(cfg, run_dir)
-    return evaluate(env, agent, cfg, out_dir, progress)
+    runtime = runtime_or_new(runtime)
+    agent, env = make_agent(cfg, run_dir, runtime)
+    return evaluate(env, agent, cfg, out_dir, progress, runtime)

@@ -1,5 +1,5 @@
 """The pictures of an evaluation: trajectories.png, difficulty.png, episodes.gif and (with
-``robustness``) robustness.png.
+``robustness``) robustness.png; and the learning report's performance profiles (``draw_profiles``).
 
 ``draw_all`` draws each one on its own: a picture that fails to render is reported as a warning
 naming the file, and never costs the evaluation its numbers (eval.json is written before).
@@ -8,15 +8,18 @@ naming the file, and never costs the evaluation its numbers (eval.json is writte
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from quicknav_core.config import EnvConfig
+from quicknav_core.eval.aggregate import performance_profile
 from quicknav_core.eval.episodes import Episodes
+from quicknav_core.layout import EVAL
 
-__all__ = ["draw_all", "draw_difficulty", "draw_gif", "draw_robustness", "draw_trajectories",
+__all__ = ["draw_all", "draw_difficulty", "draw_gif", "draw_profiles", "draw_robustness", "draw_trajectories",
            "picture_warning"]  # fmt: skip
 
 
@@ -33,12 +36,12 @@ def draw_all(
     """Draw every picture of an evaluation into ``out_dir``; the warnings of those that failed."""
     import matplotlib.pyplot as plt
 
-    jobs = [("trajectories.png", lambda p: draw_trajectories(ep, config, p, title=title)),
-            ("difficulty.png", lambda p: draw_difficulty(rows, p, title=title))]  # fmt: skip
+    jobs = [(EVAL.trajectories, lambda p: draw_trajectories(ep, config, p, title=title)),
+            (EVAL.difficulty, lambda p: draw_difficulty(rows, p, title=title))]  # fmt: skip
     if robustness:
-        jobs.append(("robustness.png", lambda p: draw_robustness(robustness, p, title=title)))
+        jobs.append((EVAL.robustness, lambda p: draw_robustness(robustness, p, title=title)))
     if gif and ep.gif["theta"].shape[0]:
-        jobs.append(("episodes.gif", lambda p: draw_gif(ep, config, p, title=title)))
+        jobs.append((EVAL.gif, lambda p: draw_gif(ep, config, p, title=title)))
     warnings = []
     for name, draw in jobs:
         try:
@@ -167,3 +170,45 @@ def draw_gif(
             frames.append(render_frame(snap, config, ep.trajectories[i, : t + 1],
                                        title=f"{title} episode {i + 1}  t={t}", size_px=320))  # fmt: skip
     return save_gif(frames, path, fps=10)
+
+
+def draw_profiles(
+    panels: Sequence[tuple[str, Sequence[tuple[str, np.ndarray, bool]]]],
+    path: Path,
+    xlabel: str = "SPL threshold τ",
+) -> Path:
+    """One panel per (title, rows); a row is (label, (seeds, episodes) scores in [0, 1], dashed).
+    Each curve is the fraction of runs x episodes with a score above τ, its band the 95 % interval;
+    rows labelled as a baseline are drawn in grey."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    taus = np.linspace(0.0, 1.0, 101)
+    fig, axes = plt.subplots(1, len(panels), figsize=(6.2 * len(panels), 4.4), squeeze=False)
+    for ax, (title, rows) in zip(axes[0], panels, strict=True):
+        for i, (label, scores, dashed) in enumerate(rows):
+            point, lo, hi = performance_profile(scores, taus)
+            colour = "0.45" if "baseline" in label else f"C{i % 10}"
+            n = np.asarray(scores).shape[0]
+            ax.plot(taus, point, color=colour, linestyle="--" if dashed else "-",
+                    label=f"{label} ({n} seed{'s' if n != 1 else ''})")  # fmt: skip
+            if not np.isnan(lo).all():
+                ax.fill_between(taus, lo, hi, color=colour, alpha=0.15, linewidth=0)
+        ax.set_title(title)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel("fraction of seeds x episodes with score > τ")
+        ax.set_xlim(0, 1)
+        ax.set_ylim(0, 1.02)
+        ax.grid(alpha=0.3)
+        if rows:
+            ax.legend(fontsize=7, loc="lower left")
+        else:
+            ax.text(0.5, 0.5, "no row with per-episode scores yet", ha="center", va="center")
+    fig.suptitle("Performance profiles (held-out test bank; bands: stratified bootstrap 95 %)")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -1,164 +1,21 @@
-"""Shortest collision-free paths for the robot's disc, and an oracle controller that follows them.
-
-The free space of the disc is sampled on a refined grid: every cell is split into ``k x k`` nodes at
-the sub-cell centres, and a node is usable when a disc of ``radius`` there overlaps no wall (the
-env's own collision test). Nodes connect 8-ways; a diagonal step needs both orthogonal neighbours
-usable (no corner cutting). Distances to the goal are found by relaxing every node against its
-neighbours until nothing changes (Bellman-Ford on the grid graph, a ``while_loop``: jit-able and
-vmappable across rooms). Paths on an 8-connected grid are octile paths, at most ~8 % longer than
-the true shortest path; with k = 5 (10 cm nodes on the default room; an odd k puts a node on every cell's centre line, so one-cell corridors keep their full clearance) that is the reference length
-used for SPL, minus the goal radius (an episode succeeds on entering the goal disc).
-
-The oracle controller drives the real differential drive along that path: pure pursuit of a point a
-few nodes down the distance field (planned with a small safety margin), turning in place when the
-point is far off the heading.
+"""The oracle controller: it drives the real differential drive along the planner's shortest path
+(``env.plan``): pure pursuit of a point a few nodes down the distance field (planned with a small
+safety margin), turning in place when the point is far off the heading.
 """
 
 from __future__ import annotations
 
-import math
-
-import jax
 import jax.numpy as jnp
 
-from quicknav_core.env.dynamics import disc_overlaps_wall_bits, wrap_angle
-
-INF = 1e9
-# 8 neighbours (d_row, d_col), orthogonal first
-_NEIGHBOURS = ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (1, -1), (-1, 1), (-1, -1))
-
-
-def node_positions(grid_size: int, room_size: float | jax.Array, k: int) -> jax.Array:
-    """(n, n, 2) x, y of every node, n = grid_size * k."""
-    n = grid_size * k
-    h = room_size / n
-    centres = (jnp.arange(n, dtype=jnp.float32) + 0.5) * h
-    xs, ys = jnp.meshgrid(centres, centres)  # xs varies along columns
-    return jnp.stack([xs, ys], axis=-1)
-
-
-def usable_nodes(row_bits: jax.Array, room_size, radius, k: int, reach: int = 0) -> jax.Array:
-    """(n, n) bool: the disc fits at the node (``reach``: as in ``disc_overlaps_wall_bits``)."""
-    g = row_bits.shape[0]
-    pts = node_positions(g, room_size, k).reshape(-1, 2)
-    cell = room_size / g
-    hit = jax.vmap(lambda p: disc_overlaps_wall_bits(p, row_bits, cell, radius, reach))(pts)
-    return ~hit.reshape(g * k, g * k)
-
-
-def _shift(a: jax.Array, dr: int, dc: int, fill) -> jax.Array:
-    """out[r, c] = a[r + dr, c + dc] (``fill`` outside)."""
-    n, m = a.shape
-    padded = jnp.pad(a, 1, constant_values=fill)
-    return jax.lax.dynamic_slice(padded, (1 + dr, 1 + dc), (n, m))
-
-
-def distance_field(usable: jax.Array, seeds: jax.Array, step: float | jax.Array) -> jax.Array:
-    """Shortest 8-connected path length (no corner cutting) from every node to the seeded nodes.
-
-    ``seeds`` (n, n) float: initial distances (INF where not a seed). Unreachable nodes stay >= INF.
-    """
-    diag = step * math.sqrt(2.0)
-    moves = []
-    for dr, dc in _NEIGHBOURS:
-        ok = usable & _shift(usable, dr, dc, False)
-        if dr and dc:  # diagonal: both orthogonal intermediates must be usable
-            ok = ok & _shift(usable, dr, 0, False) & _shift(usable, 0, dc, False)
-        moves.append((dr, dc, ok, diag if dr and dc else step))
-
-    def relax(d):
-        best = d
-        for dr, dc, ok, w in moves:
-            best = jnp.minimum(best, jnp.where(ok, _shift(d, dr, dc, INF) + w, INF))
-        return best
-
-    def cond(carry):
-        return carry[1]
-
-    def body(carry):
-        d, _ = carry
-        new = relax(d)
-        return new, jnp.any(new < d)
-
-    d0 = jnp.where(usable, seeds, INF)
-    d, _ = jax.lax.while_loop(cond, body, (d0, jnp.bool_(True)))
-    return d
-
-
-def _nearest_nodes(pos, n: int, h) -> tuple[jax.Array, jax.Array]:
-    """The 3x3 block of node indices around ``pos`` (rows (9,), cols (9,)), clipped to the grid."""
-    rc = jnp.floor(pos[::-1] / h).astype(jnp.int32)
-    off = jnp.array([-1, 0, 1], jnp.int32)
-    rows = jnp.repeat(jnp.clip(rc[0] + off, 0, n - 1), 3)
-    cols = jnp.tile(jnp.clip(rc[1] + off, 0, n - 1), 3)
-    return rows, cols
-
-
-def goal_field(row_bits, goal, room_size, radius, k: int, reach: int = 0) -> tuple[jax.Array, jax.Array]:
-    """(distance field to the goal point (n, n), usable (n, n))."""
-    g = row_bits.shape[0]
-    n = g * k
-    h = room_size / n
-    usable = usable_nodes(row_bits, room_size, radius, k, reach)
-    nodes = node_positions(g, room_size, k)
-    rows, cols = _nearest_nodes(goal, n, h)
-    dist = jnp.linalg.norm(nodes[rows, cols] - goal, axis=-1)
-    seeds = jnp.full((n, n), INF).at[rows, cols].min(jnp.where(usable[rows, cols], dist, INF))
-    return distance_field(usable, seeds, h), usable
-
-
-def path_length_from(field: jax.Array, pos, room_size, k: int) -> jax.Array:
-    """Shortest path length from a point: best of the nearby nodes (straight hop + their distance)."""
-    n = field.shape[0]
-    h = room_size / n
-    rows, cols = _nearest_nodes(pos, n, h)
-    centres = (jnp.stack([cols, rows], axis=-1).astype(jnp.float32) + 0.5) * h
-    return jnp.min(jnp.linalg.norm(centres - pos, axis=-1) + field[rows, cols])
-
-
-def shortest_path_length(
-    row_bits, start, goal, room_size, radius, goal_radius, k: int = 5, reach: int = 0
-) -> jax.Array:
-    """Reference length of an episode: shortest disc path from ``start`` into the goal disc.
-
-    Returns INF-sized values (>= 1e8) if the goal cannot be reached.
-    """
-    field, _ = goal_field(row_bits, goal, room_size, radius, k, reach)
-    return jnp.maximum(path_length_from(field, start, room_size, k) - goal_radius, 0.0)
-
-
-def greedy_path(field: jax.Array, usable: jax.Array, start_node: tuple[int, int], max_len: int):
-    """Node sequence obtained by always stepping to the neighbour with the smallest distance."""
-    n = field.shape[0]
-
-    def step(node, _):
-        r, c = node
-        best = (field[r, c], r, c)
-        cand = []
-        for dr, dc in _NEIGHBOURS:
-            rr, cc = jnp.clip(r + dr, 0, n - 1), jnp.clip(c + dc, 0, n - 1)
-            ok = usable[rr, cc]
-            if dr and dc:
-                ok = (
-                    ok
-                    & usable[jnp.clip(r + dr, 0, n - 1), c]
-                    & usable[r, jnp.clip(c + dc, 0, n - 1)]
-                )
-            cand.append((jnp.where(ok, field[rr, cc], INF), rr, cc))
-        for d, rr, cc in cand:
-            better = d < best[0]
-            best = (
-                jnp.where(better, d, best[0]),
-                jnp.where(better, rr, best[1]),
-                jnp.where(better, cc, best[2]),
-            )
-        nxt = (best[1], best[2])
-        return nxt, jnp.stack(nxt)
-
-    _, nodes = jax.lax.scan(
-        step, (jnp.int32(start_node[0]), jnp.int32(start_node[1])), None, max_len
-    )
-    return nodes
+from quicknav_core.env.dynamics import wrap_angle
+from quicknav_core.env.plan import (  # noqa: F401 (the planner's names, as eval used them)
+    INF,
+    goal_field,
+    greedy_path,
+    nearest_nodes,
+    node_positions,
+    shortest_path_length,
+)
 
 
 # --------------------------------------------------------------------------- oracle controller
@@ -179,7 +36,7 @@ def oracle_plan(row_bits, goal, room_size, radius, k: int = 5, margin: float = 0
 def _pursuit_target(field, usable, pos, room_size, lookahead: int):
     n = field.shape[0]
     h = room_size / n
-    rows, cols = _nearest_nodes(pos, n, h)
+    rows, cols = nearest_nodes(pos, n, h)
     centres = (jnp.stack([cols, rows], axis=-1).astype(jnp.float32) + 0.5) * h
     score = jnp.where(
         usable[rows, cols], field[rows, cols] + jnp.linalg.norm(centres - pos, axis=-1), INF

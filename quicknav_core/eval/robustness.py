@@ -20,6 +20,7 @@ from quicknav_core.env.perturb import randomize_numbers
 from quicknav_core.eval.agents import Agent
 from quicknav_core.eval.episodes import run_episodes
 from quicknav_core.eval.statistics import spl, wilson_interval
+from quicknav_core.runtime import Runtime
 
 __all__ = ["LEVELS", "Level", "robustness_levels", "run_robustness"]
 
@@ -77,6 +78,7 @@ def robustness_levels(env_config: EnvConfig) -> list[tuple[Level, EnvConfig]]:
 def run_robustness(
     env_config: EnvConfig, agent: Agent, cfg: EvalConfig,
     progress: Callable[[int, int], bool | None] | None = None, params=None,
+    runtime: Runtime | None = None,
 ) -> list[dict[str, Any]]:  # fmt: skip
     """Evaluate ``agent`` at every level on ``cfg``'s episodes: one row per level.
 
@@ -86,17 +88,18 @@ def run_robustness(
     plain = cfg.model_copy(update={"gif_episodes": 0, "pictures": False})
     # every level is the same program and room bank with other ranges: build once, swap the ranges
     if params is None:
-        env, base_params = levels[0][1].build(cfg.split)
+        env, base_params = levels[0][1].build(cfg.split, runtime)
     else:
         from quicknav_core.env.quicknav import QuickNavEnv
+        from quicknav_core.env.room_sources import room_source
 
-        env, base_params = QuickNavEnv(levels[0][1]), params
+        env, base_params = QuickNavEnv(levels[0][1], room_source(levels[0][1], runtime)), params
     rows = []
     for i, (level, level_env) in enumerate(levels):
         params = base_params.replace(randomize=randomize_numbers(level_env))
         offset = i * cfg.episodes
         report = None if progress is None else (lambda d, t, o=offset: progress(o + d, t * len(levels)))
-        ep = run_episodes(env, params, agent, plain, report)
+        ep = run_episodes(env, params, agent, plain, report, runtime)
         n, k = len(ep.success), int(ep.success.sum())
         lo, hi = wilson_interval(k, n)
         rows.append({

@@ -3,7 +3,7 @@ and the same per difficulty bin (the oracle's shortest path to the goal).
 
 SPL (Anderson et al. 2018) = mean_i S_i * l_i / max(p_i, l_i), with p_i the path the robot drove
 until it reached the goal disc and l_i the shortest disc path into the goal disc
-(``planning.shortest_path_length``).
+(``env.plan.shortest_path_length``).
 """
 
 from __future__ import annotations

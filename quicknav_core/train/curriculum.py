@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from quicknav_core.config import CurriculumConfig, EnvConfig
-from quicknav_core.env.rooms import free_cell_table
+from quicknav_core.env.room_sources import free_cell_table
 from quicknav_core.env.types import EnvParams
 
 PLANNER_K = 1  # planner nodes per cell side for the pool (a pool has ~10^4-10^5 episodes)
@@ -71,9 +71,9 @@ def draw_episodes(rooms: np.ndarray, config: EnvConfig, per_room: int, seed: int
 
 def path_lengths(params: EnvParams, room, start, goal, grid: int, reach: int = 0) -> np.ndarray:
     """The oracle planner's shortest path (metres) from each start cell's centre to its goal
-    cell's centre, less the goal radius: its distance field (``eval.planning.distance_field``)
+    cell's centre, less the goal radius: its distance field (``env.plan.distance_field``)
     on the cell grid, seeded at the goal cell alone."""
-    from quicknav_core.eval.planning import distance_field, usable_nodes
+    from quicknav_core.env.plan import distance_field, usable_nodes
 
     cell = float(params.room_size) / grid
 

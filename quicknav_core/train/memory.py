@@ -152,5 +152,22 @@ def eval_memory(cfg: EvalConfig) -> Estimate:
     return Estimate(parts, fields)
 
 
+def rollout_memory(env: EnvConfig, num_envs: int, split: str = "train") -> Estimate:
+    """Peak memory of a gRPC Rollout stream: the banks, and ``num_envs`` envs stepped together
+    (states, observations and final observations, in and out of each step)."""
+    parts = {
+        "runtime": RUNTIME_BYTES,
+        "room banks": 2 * bank_bytes(env, split),
+        "env batch": int(TRANSIENT_FACTOR * num_envs * (env_state_bytes(env) + 2 * env.obs_dim * 4)),
+    }
+    return Estimate(parts, {"room banks": f"{split}_rooms", "env batch": "num_envs"})
+
+
+def policy_memory(cfg: TrainConfig) -> Estimate:
+    """Peak memory of serving a trained policy (the Policy stream): its networks, no envs."""
+    parts = {"runtime": RUNTIME_BYTES, "networks": int(network_params(cfg) * 4 * 2)}
+    return Estimate(parts, {"networks": "network"})
+
+
 def megabytes(n: int) -> int:
     return math.ceil(n / MB)

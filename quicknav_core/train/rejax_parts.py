@@ -39,6 +39,7 @@ from rejax.networks import (
 
 from quicknav_core.config import TrainConfig
 from quicknav_core.config.train import TRAINER_LOG_STD
+from quicknav_core.runtime import Runtime
 
 ACTION_RANGE = (-1.0, 1.0)
 ACTION_DIM = 2
@@ -108,19 +109,15 @@ def rejax_networks(config: TrainConfig) -> dict[str, nn.Module]:
 # rejax's ``init_state`` makes a new state class and a new optimiser (closures over the learning
 # rate) on every call, and jit keys its cache on both: every run would trace and compile its
 # program anew, even one that differs from the last only in a reward weight. One class per state
-# layout and one optimiser per (learning rate, gradient clip) make those runs share it.
-_STATE_CLASSES: dict[tuple, type] = {}
-_OPTIMISERS: dict[tuple[float, float], optax.GradientTransformation] = {}
-
-
-def shareable_state(state, learning_rate: float, max_grad_norm: float):
-    """``state`` (from a rejax ``init_state``) rebuilt from a shared class and shared optimiser."""
+# layout and one optimiser per (learning rate, gradient clip), kept in the runtime, make the runs
+# of one process share it.
+def shareable_state(state, learning_rate: float, max_grad_norm: float, runtime: Runtime):
+    """``state`` (from a rejax ``init_state``) rebuilt from the runtime's shared class and optimiser."""
     key = (float(learning_rate), float(max_grad_norm))
-    if key not in _OPTIMISERS:
-        _OPTIMISERS[key] = optax.chain(optax.clip(key[1]), optax.adam(learning_rate=key[0]))
-    tx = _OPTIMISERS[key]
+    tx = runtime.program(("rejax-optimiser", key),
+                         lambda: optax.chain(optax.clip(key[1]), optax.adam(learning_rate=key[0])))  # fmt: skip
     fields = {f.name: getattr(state, f.name) for f in dataclasses.fields(state)}
     fields = {k: v.replace(tx=tx) if isinstance(v, TrainState) else v for k, v in fields.items()}
     layout = (type(state).__name__, tuple(fields))
-    cls = _STATE_CLASSES.setdefault(layout, type(state))
+    cls = runtime.program(("rejax-state-class", layout), lambda: type(state))
     return cls(**fields)

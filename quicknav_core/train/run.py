@@ -1,10 +1,10 @@
 """Run folders: training in chunks with progress callbacks, checkpoints, resume, learning curves.
 
-A run folder holds
+A run folder (its names: ``quicknav_core.layout``) holds
   config.json          the exact TrainConfig
   metrics.jsonl        one JSON line per chunk (env steps, wall time, steps/s, losses, episode stats)
   checkpoint/          state.msgpack (flax msgpack, no pickle) and meta.json
-  learning_curve.png   return and success rate against env steps
+  learning_curve.png   return and success rate against env steps (drawn by ``train.pictures``)
 The same ``train_run`` serves the CLI (a progress bar) and the service worker (progress events,
 chunks bounded in time, and cancellation between units: ``interrupt`` is asked after each one).
 
@@ -15,7 +15,6 @@ one, never a mix, and a damaged one is refused instead of loaded.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import os
@@ -27,14 +26,12 @@ from pathlib import Path
 from typing import Any
 
 from quicknav_core.config import TrainConfig
+from quicknav_core.layout import CHECKPOINT, FORMAT, RUN, CheckpointMeta, RunFolder, digest
+from quicknav_core.runtime import Runtime
 
-CONFIG_FILE = "config.json"
-METRICS_FILE = "metrics.jsonl"
-CHECKPOINT_DIR = "checkpoint"
-STATE_FILE = "state.msgpack"
-META_FILE = "meta.json"
-REPLAY_FILE = "replay.msgpack"  # SAC/TD3: the replay buffer, written at most every replay_every_s
-CURVE_FILE = "learning_curve.png"
+# the layout's names, as this module's readers knew them
+CONFIG_FILE, METRICS_FILE, CHECKPOINT_DIR, CURVE_FILE = RUN.config, RUN.metrics, RUN.checkpoint, RUN.curve
+STATE_FILE, META_FILE, REPLAY_FILE = CHECKPOINT.state, CHECKPOINT.meta, CHECKPOINT.replay
 
 
 @dataclass
@@ -82,31 +79,28 @@ def save_checkpoint(run_dir: Path, trainer, state, chunk: int, with_replay: bool
     A replay buffer (SAC, TD3: hundreds of MB) is its own file: written with ``with_replay``, else
     the previous checkpoint's is kept (hard-linked, no bytes written) and the meta data says at
     which env step it was saved."""
-    run_dir = Path(run_dir)
-    ckpt, new, old = (run_dir / CHECKPOINT_DIR, run_dir / f"{CHECKPOINT_DIR}.new",
-                      run_dir / f"{CHECKPOINT_DIR}.old")  # fmt: skip
+    run = RunFolder(run_dir)
+    ckpt, new, old = run.checkpoint_folder, run.checkpoint_new, run.checkpoint_old
     shutil.rmtree(new, ignore_errors=True)
     new.mkdir(parents=True)
     try:
         replay = trainer.has_replay(state)
         data = trainer.to_bytes(state, with_replay=not replay)
-        _write_synced(new / STATE_FILE, data)
-        meta = {
-            "chunk": chunk, "env_steps": trainer.env_steps(state),
-            "trainer": trainer.config.trainer_kind, "format": "flax-msgpack-v1",
-            "state_bytes": len(data), "state_sha256": hashlib.sha256(data).hexdigest(),
-        }  # fmt: skip
+        _write_synced(new / CHECKPOINT.state, data)
+        meta = CheckpointMeta(chunk=chunk, env_steps=trainer.env_steps(state),
+                              trainer=trainer.config.trainer_kind, format=FORMAT,
+                              state_bytes=len(data), state_sha256=digest(data))  # fmt: skip
         if replay:
             previous = _replay_meta(ckpt)
             if with_replay or previous is None:
                 buffer = trainer.replay_to_bytes(state)
-                _write_synced(new / REPLAY_FILE, buffer)
-                meta["replay"] = {"env_steps": meta["env_steps"], "bytes": len(buffer),
-                                  "sha256": hashlib.sha256(buffer).hexdigest()}  # fmt: skip
+                _write_synced(new / CHECKPOINT.replay, buffer)
+                record = {"env_steps": meta.env_steps, "bytes": len(buffer), "sha256": digest(buffer)}
             else:
-                os.link(ckpt / REPLAY_FILE, new / REPLAY_FILE)
-                meta["replay"] = previous
-        _write_synced(new / META_FILE, json.dumps(meta).encode())
+                os.link(ckpt / CHECKPOINT.replay, new / CHECKPOINT.replay)
+                record = previous
+            meta = CheckpointMeta(**{**meta.__dict__, "replay": record})
+        _write_synced(new / CHECKPOINT.meta, meta.to_json().encode())
         _fsync_dir(new)
     except BaseException:
         shutil.rmtree(new, ignore_errors=True)  # frees what the failed write took
@@ -115,7 +109,7 @@ def save_checkpoint(run_dir: Path, trainer, state, chunk: int, with_replay: bool
     if ckpt.exists():
         os.rename(ckpt, old)
     os.rename(new, ckpt)
-    _fsync_dir(run_dir)
+    _fsync_dir(run.path)
     shutil.rmtree(old, ignore_errors=True)
     return ckpt
 
@@ -123,70 +117,47 @@ def save_checkpoint(run_dir: Path, trainer, state, chunk: int, with_replay: bool
 def _replay_meta(folder: Path) -> dict[str, Any] | None:
     """The replay entry of a complete checkpoint's meta data (None if it has none)."""
     try:
-        meta = json.loads((folder / META_FILE).read_text())
-    except (OSError, ValueError):
+        meta = CheckpointMeta.from_json((folder / CHECKPOINT.meta).read_text())
+    except (OSError, ValueError, TypeError):
         return None
-    return meta.get("replay") if (folder / REPLAY_FILE).exists() else None
-
-
-def _matches(data: bytes, size: int | None, digest: str) -> bool:
-    return len(data) == size and hashlib.sha256(data).hexdigest() == digest
-
-
-def _complete(folder: Path) -> bool:
-    """Whether a checkpoint folder holds a state (and replay buffer) that match its meta data."""
-    try:
-        meta = json.loads((folder / META_FILE).read_text())
-        data = (folder / STATE_FILE).read_bytes()
-        if "replay" in meta and not _matches((folder / REPLAY_FILE).read_bytes(),
-                                             meta["replay"]["bytes"], meta["replay"]["sha256"]):  # fmt: skip
-            return False
-    except (OSError, ValueError, KeyError):
-        return False
-    if "state_sha256" not in meta:  # written before checksums were: as good as its files
-        return True
-    return _matches(data, meta.get("state_bytes"), meta["state_sha256"])
+    return meta.replay if (folder / CHECKPOINT.replay).exists() else None
 
 
 def checkpoint_dir(run_dir: Path) -> Path | None:
-    """The run's last complete checkpoint: ``checkpoint/``, or the previous one left in
-    ``checkpoint.old/`` by a crash in the middle of a swap; None if there is none."""
-    run_dir = Path(run_dir)
-    for folder in (run_dir / CHECKPOINT_DIR, run_dir / f"{CHECKPOINT_DIR}.old"):
-        if _complete(folder):
-            return folder
-    return None
+    """The run's last complete checkpoint (``layout.RunFolder.checkpoint``); None if there is none."""
+    return RunFolder(run_dir).checkpoint()
 
 
 def read_config(run_dir: Path) -> TrainConfig:
     """The TrainConfig of a run folder; FileNotFoundError if it is not one."""
-    cfg_path = Path(run_dir) / CONFIG_FILE
+    cfg_path = RunFolder(run_dir).config
     if not cfg_path.exists():
-        raise FileNotFoundError(f"{run_dir} is not a run folder: no {CONFIG_FILE}")
+        raise FileNotFoundError(f"{run_dir} is not a run folder: no {RUN.config}")
     return TrainConfig.model_validate_json(cfg_path.read_text())
 
 
 def read_meta(run_dir: Path) -> dict[str, Any]:
     """The meta data of a run folder's last complete checkpoint (chunk, env steps, trainer)."""
-    folder = checkpoint_dir(run_dir)
-    if folder is None:
+    meta = RunFolder(run_dir).meta()
+    if meta is None:
         raise FileNotFoundError(f"{run_dir} has no complete checkpoint")
-    return json.loads((folder / META_FILE).read_text())
+    return json.loads(meta.to_json())
 
 
-def load_run(run_dir: Path, trainer=None):
-    """(config, trainer, state, meta) of a run folder's last checkpoint (``trainer``: a warm one)."""
+def load_run(run_dir: Path, trainer=None, runtime: Runtime | None = None):
+    """(config, trainer, state, meta) of a run folder's last checkpoint (``trainer``: a warm one;
+    else one made in ``runtime``)."""
     from quicknav_core.train.trainers import make_trainer
 
     run_dir = Path(run_dir)
     config = read_config(run_dir)
     ckpt = checkpoint_dir(run_dir)
     if ckpt is None:
-        raise FileNotFoundError(
-            f"{run_dir} has no checkpoint yet, or none that is complete ({CHECKPOINT_DIR}/{STATE_FILE})"
-        )
-    meta = json.loads((ckpt / META_FILE).read_text())
-    trainer = trainer if trainer is not None and trainer.config == config else make_trainer(config)
+        raise FileNotFoundError(f"{run_dir} has no checkpoint yet, or none that is complete"
+                                f" ({RUN.checkpoint}/{CHECKPOINT.state})")  # fmt: skip
+    meta = read_meta(run_dir)
+    trainer = (trainer if trainer is not None and trainer.config == config
+               else make_trainer(config, runtime))  # fmt: skip
     state = trainer.from_bytes((ckpt / STATE_FILE).read_bytes())
     if "replay" in meta:
         state = trainer.with_replay_bytes(state, (ckpt / REPLAY_FILE).read_bytes())
@@ -194,10 +165,8 @@ def load_run(run_dir: Path, trainer=None):
 
 
 def read_metrics(run_dir: Path) -> list[dict[str, Any]]:
-    path = Path(run_dir) / METRICS_FILE
-    if not path.exists():
-        return []
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    """metrics.jsonl's rows (``layout.RunFolder.read_metrics``)."""
+    return RunFolder(run_dir).read_metrics()
 
 
 def train_run(
@@ -211,6 +180,7 @@ def train_run(
     interrupt: Callable[[], bool] | None = None,
     replay_every_s: float = 0.0,
     on_checkpoint: Callable[[int], None] | None = None,
+    runtime: Runtime | None = None,
 ) -> dict[str, Any]:
     """Train ``config`` into ``run_dir`` (or continue it with ``resume``). Returns a summary.
 
@@ -232,7 +202,7 @@ def train_run(
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     if resume:
-        config, trainer, state, meta = load_run(run_dir, trainer)
+        config, trainer, state, meta = load_run(run_dir, trainer, runtime)
         chunk = int(meta["chunk"])
         # drop metric lines written after the checkpoint (a crash between the two)
         kept = [m for m in read_metrics(run_dir) if m["chunk"] <= chunk]
@@ -240,7 +210,7 @@ def train_run(
     else:
         (run_dir / CONFIG_FILE).write_text(config.model_dump_json(indent=2))
         (run_dir / METRICS_FILE).write_text("")
-        trainer = trainer or make_trainer(config)
+        trainer = trainer or make_trainer(config, runtime)
         state = trainer.init_state()
         chunk = 0
     chunks = math.ceil(trainer.num_updates / trainer.updates_per_chunk)  # without time bounds
@@ -285,15 +255,9 @@ def train_run(
             if stop:
                 stopped = True
                 break
-    warnings = []
-    try:
-        plot_learning_curve(run_dir)
-    except Exception as e:  # a picture never costs a run its checkpoint and numbers
-        import matplotlib.pyplot as plt
+    from quicknav_core.train.pictures import draw_learning_curve_safely
 
-        plt.close("all")
-        (run_dir / CURVE_FILE).unlink(missing_ok=True)
-        warnings.append(f"{CURVE_FILE} was not drawn: {type(e).__name__}: {e}")
+    warnings = draw_learning_curve_safely(run_dir)  # a picture never costs a run its numbers
     return {
         "run_dir": str(run_dir), "chunks_done": chunk, "chunks": max(chunks, chunk),
         "env_steps": trainer.env_steps(state), "total_steps": total, "stopped": stopped,
@@ -325,37 +289,3 @@ class TensorBoardLog:
 
     def __exit__(self, *exc) -> None:
         self.writer.close()
-
-
-def plot_learning_curve(run_dir: Path) -> Path | None:
-    """learning_curve.png: mean episode return and success rate against env steps."""
-    rows = read_metrics(run_dir)
-    if not rows:
-        return None
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    steps = [r["env_steps"] for r in rows]
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 3.8))
-    a1.plot(steps, [r.get("mean_return", math.nan) for r in rows], marker=".")
-    a1.set_xlabel("env steps")
-    a1.set_ylabel("mean episode return")
-    a1.grid(alpha=0.3)
-    a2.plot(steps, [r.get("success_rate", math.nan) for r in rows], marker=".", color="tab:green")
-    a2.set_xlabel("env steps")
-    a2.set_ylabel("success rate (training episodes)")
-    a2.set_ylim(-0.02, 1.02)
-    a2.grid(alpha=0.3)
-    cfg_path = Path(run_dir) / CONFIG_FILE
-    if cfg_path.exists():
-        cfg = TrainConfig.model_validate_json(cfg_path.read_text())
-        fig.suptitle(
-            f"{cfg.trainer_kind}, {cfg.network.kind}, grid {cfg.env.grid_size}", fontsize=10
-        )
-    fig.tight_layout()
-    path = Path(run_dir) / CURVE_FILE
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path

@@ -1,6 +1,6 @@
 """Trainers behind one interface: rejax's PPO/SAC/TD3 for memoryless MLPs, our recurrent PPO otherwise.
 
-``make_trainer(TrainConfig)`` returns a ``Trainer`` with
+``make_trainer(TrainConfig, runtime)`` returns a ``Trainer`` with
   init_state() -> state              (from the config's seed)
   run_unit(state) -> (state, unit metrics)   one compiled call of ``updates_per_unit`` updates
   finish_chunk(state, [unit metrics]) -> (state, metrics)   a chunk's metrics, episode totals cleared
@@ -38,6 +38,7 @@ from flax import serialization
 
 from quicknav_core.config import PPOConfig, SACConfig, TD3Config, TrainConfig, traced_fields
 from quicknav_core.networks import make_network
+from quicknav_core.runtime import Runtime, runtime_or_new
 from quicknav_core.train.recurrent_ppo import PPOHyper, RecurrentPPO
 from quicknav_core.train.stats import StatsWrapper, summarize
 
@@ -137,8 +138,9 @@ class Trainer:
     # top-level state fields whose leading axis is the env batch (sharded over devices)
     BATCH_FIELDS: tuple[str, ...] = ()
 
-    def __init__(self, config: TrainConfig):
+    def __init__(self, config: TrainConfig, runtime: Runtime | None = None):
         self.config = config
+        self.runtime = runtime_or_new(runtime)
         self.devices = local_devices(config.devices)
         if config.num_envs % len(self.devices):
             raise ValueError(
@@ -148,7 +150,9 @@ class Trainer:
         self.mesh = (jax.sharding.Mesh(self.devices, ("envs",)) if len(self.devices) > 1
                      else None)  # fmt: skip
         # nothing here reads the final observations: do not pay a second lidar cast for them
-        self.env, self.env_params = config.env.model_copy(update={"final_obs": False}).build("train")
+        self.env, self.env_params = config.env.model_copy(update={"final_obs": False}).build(
+            "train", self.runtime
+        )
         self.pool = None
         if config.curriculum.enabled:
             from quicknav_core.train.curriculum import first_level, make_pool, with_pool
@@ -336,8 +340,8 @@ class RecurrentPPOTrainer(Trainer):
 
     BATCH_FIELDS = ("env_state", "obs", "start", "carry", "stats")
 
-    def __init__(self, config: TrainConfig):
-        super().__init__(config)
+    def __init__(self, config: TrainConfig, runtime: Runtime | None = None):
+        super().__init__(config, runtime)
         algo: PPOConfig = config.algorithm
         self.network = make_network(config.network)
         self.algo = RecurrentPPO(
@@ -416,8 +420,8 @@ class RejaxTrainer(Trainer):
 
     BATCH_FIELDS = ("env_state", "last_obs", "last_done", "rew_rms_state")
 
-    def __init__(self, config: TrainConfig):
-        super().__init__(config)
+    def __init__(self, config: TrainConfig, runtime: Runtime | None = None):
+        super().__init__(config, runtime)
         import rejax
 
         from quicknav_core.train import rejax_parts
@@ -474,7 +478,8 @@ class RejaxTrainer(Trainer):
 
         state = self.algo.init_state(jax.random.PRNGKey(self.config.seed))
         algo = self.config.algorithm
-        return self.place(shareable_state(state, algo.learning_rate, algo.max_grad_norm))
+        return self.place(shareable_state(state, algo.learning_rate, algo.max_grad_norm,
+                                          self.runtime))  # fmt: skip
 
     def run_unit(self, state):
         if self.mesh is None:
@@ -539,8 +544,9 @@ def _rejax_unit(algo, train_state):
     return algo.train(train_state=train_state)[0]
 
 
-def make_trainer(config: TrainConfig) -> Trainer:
-    """The trainer for a config (``config.trainer_kind`` says which)."""
+def make_trainer(config: TrainConfig, runtime: Runtime | None = None) -> Trainer:
+    """The trainer for a config (``config.trainer_kind`` says which); its room banks and
+    shareable compiled parts come from ``runtime``."""
     if config.trainer_kind == "recurrent-ppo":
-        return RecurrentPPOTrainer(config)
-    return RejaxTrainer(config)
+        return RecurrentPPOTrainer(config, runtime)
+    return RejaxTrainer(config, runtime)

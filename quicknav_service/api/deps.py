@@ -28,8 +28,8 @@ StoreDep = Annotated[JobStore, Depends(_store)]
 SettingsDep = Annotated[Settings, Depends(_settings)]
 
 
-async def _jobs(store: StoreDep, settings: SettingsDep) -> JobsService:
-    return JobsService(store, settings)
+async def _jobs(request: Request, store: StoreDep, settings: SettingsDep) -> JobsService:
+    return JobsService(store, settings, request.app.state.runtime)
 
 
 JobsDep = Annotated[JobsService, Depends(_jobs)]

@@ -10,6 +10,7 @@ import anyio
 from fastapi import APIRouter, FastAPI
 from fastapi.routing import APIRoute
 
+from quicknav_core.runtime import Runtime
 from quicknav_service.api import docs, errors, openapi
 from quicknav_service.api.event_hub import EventHub
 from quicknav_service.api.metrics import RequestMetrics
@@ -18,6 +19,7 @@ from quicknav_service.api.routes import artifacts, events, jobs, maps, ops
 from quicknav_service.api.routes.events import StreamSlots
 from quicknav_service.auth import FailureLimiter
 from quicknav_service.jobs.models import JobStore
+from quicknav_service.runtime import service_runtime
 from quicknav_service.settings import Settings, get_settings, make_store
 from quicknav_service.web import routes as web
 
@@ -46,7 +48,8 @@ def api_version() -> str:
 
 
 def create_app(
-    settings: Settings | None = None, store: JobStore | None = None, start_workers: bool | None = None
+    settings: Settings | None = None, store: JobStore | None = None, start_workers: bool | None = None,
+    runtime: Runtime | None = None,
 ) -> FastAPI:
     """The API; with ``start_workers`` (default: settings.embedded_worker) in-process workers run too."""
     settings = settings or get_settings()
@@ -80,6 +83,8 @@ def create_app(
                   generate_unique_id_function=operation_id)  # fmt: skip
     app.state.settings = settings
     app.state.store = store
+    # this process's room banks, uploaded maps and artifact store, for every request's checks
+    app.state.runtime = runtime if runtime is not None else service_runtime(settings)
     app.state.auth_limiter = FailureLimiter(settings.auth_failures_max, settings.auth_failure_window_s)
     app.state.streams = StreamSlots(settings.sse_max_per_client, settings.sse_max_total)
     app.state.event_hub = EventHub(store)

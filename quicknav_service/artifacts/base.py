@@ -7,8 +7,10 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
+from quicknav_core.layout import CHECKPOINT, RUN
+
 # files a run folder holds while a chunk is written or a checkpoint swapped: never listed
-PARTIAL_DIRS = ("checkpoint.new", "checkpoint.old")
+PARTIAL_DIRS = (RUN.checkpoint + CHECKPOINT.new_suffix, RUN.checkpoint + CHECKPOINT.old_suffix)
 
 
 class ArtifactUnavailable(Exception):

@@ -6,6 +6,7 @@ import shutil
 import uuid
 from pathlib import Path
 
+from quicknav_core.layout import RunFolder
 from quicknav_service.artifacts.base import PARTIAL_DIRS, ArtifactInfo, ArtifactStore
 
 
@@ -36,9 +37,7 @@ class LocalArtifacts(ArtifactStore):
         return self.work_dir(job_id) if self.has_checkpoint(job_id) else None
 
     def has_checkpoint(self, job_id: str) -> bool:
-        from quicknav_core.train.run import checkpoint_dir
-
-        return checkpoint_dir(self.work_dir(job_id)) is not None
+        return RunFolder(self.work_dir(job_id)).checkpoint() is not None
 
     def list(self, job_id: str) -> list[ArtifactInfo]:
         root = self.work_dir(job_id)

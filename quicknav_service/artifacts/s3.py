@@ -32,6 +32,7 @@ from datetime import timedelta
 from pathlib import Path
 from urllib.parse import urlparse
 
+from quicknav_core.layout import CHECKPOINT, RUN, RunFolder, read_meta
 from quicknav_service.artifacts.base import (
     PARTIAL_DIRS,
     ArtifactInfo,
@@ -40,10 +41,11 @@ from quicknav_service.artifacts.base import (
     RemoteFile,
 )
 
+FETCH_SUFFIX = ".fetch-"  # a checkpoint being fetched: checkpoint.fetch-<random>/
 POINTER = ".checkpoint.json"
 VERSIONS = ".checkpoint"
-RUN_FILES = ("config.json", "metrics.jsonl")  # published with every checkpoint
-COPY_FILES = ("config.json", "policy.json")  # a run copy (eval, serving) needs these
+RUN_FILES = (RUN.config, RUN.metrics)  # published with every checkpoint
+COPY_FILES = (RUN.config, RUN.manifest)  # a run copy (eval, serving) needs these
 STREAM_CHUNK = 1 << 20
 
 
@@ -188,18 +190,17 @@ class S3Artifacts(ArtifactStore):
 
     def _fetch_checkpoint(self, pointer: dict, folder: Path) -> None:
         """The pointer's checkpoint as ``folder/checkpoint/`` (skipped when the local one is it)."""
-        from quicknav_core.train.run import CHECKPOINT_DIR, META_FILE, checkpoint_dir
-
-        here = checkpoint_dir(folder)
-        if here is not None and here.name == CHECKPOINT_DIR:
-            meta = json.loads((here / META_FILE).read_text())
-            if meta.get("state_sha256") == pointer.get("state_sha256") and meta.get("chunk") == pointer["chunk"]:
+        run = RunFolder(folder)
+        here = run.checkpoint()
+        if here is not None and here == run.checkpoint_folder:
+            meta = read_meta(here)
+            if meta.state_sha256 == pointer.get("state_sha256") and meta.chunk == pointer["chunk"]:
                 return  # this machine wrote (or already fetched) this very checkpoint
-        new = folder / f"{CHECKPOINT_DIR}.fetch-{uuid.uuid4().hex[:8]}"
+        new = folder / f"{RUN.checkpoint}{FETCH_SUFFIX}{uuid.uuid4().hex[:8]}"
         try:
             for name, entry in pointer["files"].items():
                 self._fetch(entry["key"], new / name)
-            target = folder / CHECKPOINT_DIR
+            target = run.checkpoint_folder
             shutil.rmtree(target, ignore_errors=True)
             new.rename(target)
         finally:
@@ -224,17 +225,16 @@ class S3Artifacts(ArtifactStore):
         at it; versions no longer named are deleted (best effort)."""
         import obstore
 
-        from quicknav_core.train.run import META_FILE, REPLAY_FILE, STATE_FILE, checkpoint_dir
-
-        ckpt = checkpoint_dir(folder)
+        ckpt = RunFolder(folder).checkpoint()
         if ckpt is None:
             return
-        meta = json.loads((ckpt / META_FILE).read_text())
+        meta = read_meta(ckpt)
         old = self.pointer(job_id)
-        if old is not None and old.get("chunk") == meta["chunk"] and old.get("state_sha256") == meta.get("state_sha256"):
+        if old is not None and old.get("chunk") == meta.chunk and old.get("state_sha256") == meta.state_sha256:
             return  # published already
-        digests = {STATE_FILE: meta.get("state_sha256"), REPLAY_FILE: (meta.get("replay") or {}).get("sha256")}
-        version = f"{meta['chunk']:06d}-{uuid.uuid4().hex[:8]}"
+        digests = {CHECKPOINT.state: meta.state_sha256,
+                   CHECKPOINT.replay: (meta.replay or {}).get("sha256")}  # fmt: skip
+        version = f"{meta.chunk:06d}-{uuid.uuid4().hex[:8]}"
         files = {}
         for path in sorted(p for p in ckpt.iterdir() if p.is_file()):
             size, digest = path.stat().st_size, digests.get(path.name)
@@ -247,8 +247,8 @@ class S3Artifacts(ArtifactStore):
             if self._size(key) != size:
                 raise ArtifactUnavailable(self.url, f"verifying {key}", f"the stored object is not {size} bytes")
             files[path.name] = {"key": key, "bytes": size, "sha256": digest}
-        doc = {"chunk": meta["chunk"], "env_steps": meta.get("env_steps"),
-               "state_sha256": meta.get("state_sha256"), "files": files}  # fmt: skip
+        doc = {"chunk": meta.chunk, "env_steps": meta.env_steps,
+               "state_sha256": meta.state_sha256, "files": files}  # fmt: skip
         self._put(f"{job_id}/{POINTER}", json.dumps(doc, indent=1).encode())
         named = {e["key"] for e in files.values()}
         stale = [k for k, _ in self._keys(f"{job_id}/{VERSIONS}/") if k not in named]
@@ -278,8 +278,8 @@ class S3Artifacts(ArtifactStore):
                 tmp.mkdir(parents=True)
                 self._retrying(f"downloading job {job_id}'s checkpoint",
                                lambda: self._fetch_checkpoint(pointer, tmp))  # fmt: skip
-                self._retrying(f"downloading job {job_id}'s config.json",
-                               lambda: self._fetch(f"{job_id}/config.json", tmp / "config.json"))  # fmt: skip
+                self._retrying(f"downloading job {job_id}'s {RUN.config}",
+                               lambda: self._fetch(f"{job_id}/{RUN.config}", tmp / RUN.config))  # fmt: skip
                 try:
                     tmp.rename(folder)
                 except OSError:
@@ -291,8 +291,8 @@ class S3Artifacts(ArtifactStore):
                 if stale != folder and not stale.name.endswith(".tmp"):
                     shutil.rmtree(stale, ignore_errors=True)
         # the manifest changes after an evaluation (its held-out figures): always the current one
-        self._retrying(f"downloading job {job_id}'s policy.json",
-                       lambda: self._fetch_optional(f"{job_id}/policy.json", folder / "policy.json"))  # fmt: skip
+        self._retrying(f"downloading job {job_id}'s {RUN.manifest}",
+                       lambda: self._fetch_optional(f"{job_id}/{RUN.manifest}", folder / RUN.manifest))  # fmt: skip
         return folder
 
     # ---------------------------------------------------------------- reading, for the API
@@ -305,7 +305,7 @@ class S3Artifacts(ArtifactStore):
                if not _private(Path(k[len(base):])) and not k.endswith(".tmp")]  # fmt: skip
         pointer = self.pointer(job_id)
         for name, entry in (pointer or {}).get("files", {}).items():
-            out.append(ArtifactInfo(f"checkpoint/{name}", entry["bytes"]))
+            out.append(ArtifactInfo(f"{RUN.checkpoint}/{name}", entry["bytes"]))
         return sorted(out, key=lambda a: a.name)
 
     def _key(self, job_id: str, name: str) -> str | None:
@@ -369,5 +369,6 @@ def _private(rel: Path) -> bool:
     """Paths that are the store's bookkeeping or a checkpoint's local files, never listed as
     plain files: the pointer, the versions, and a scratch folder's checkpoint folders."""
     parts = rel.parts
-    return bool(parts) and (parts[0] in (POINTER, VERSIONS, "checkpoint", *PARTIAL_DIRS)
-                            or parts[0].startswith("checkpoint.fetch-") or rel.name.endswith(".tmp"))
+    return bool(parts) and (parts[0] in (POINTER, VERSIONS, RUN.checkpoint, *PARTIAL_DIRS)
+                            or parts[0].startswith(RUN.checkpoint + FETCH_SUFFIX)
+                            or rel.name.endswith(".tmp"))  # fmt: skip

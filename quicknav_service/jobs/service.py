@@ -12,6 +12,7 @@ from typing import Any
 
 from pydantic import BaseModel
 
+from quicknav_core.admission import admit
 from quicknav_core.config import (
     ConfigError,
     EnvConfig,
@@ -20,7 +21,8 @@ from quicknav_core.config import (
     resolve_sweep,
     resolve_train,
 )
-from quicknav_service.jobs.limits import Origin, check_eval, check_sweep, check_train
+from quicknav_core.runtime import Runtime
+from quicknav_service.jobs.limits import Origin, server_limits
 from quicknav_service.jobs.models import (
     AmbiguousId,
     IdempotencyConflict,
@@ -76,12 +78,14 @@ def _as_sent(body: BaseModel) -> dict[str, Any]:
 class JobsService:
     """What the API does with jobs, over one store and this server's settings."""
 
-    def __init__(self, store: JobStore, settings: Settings):
-        from quicknav_service.artifacts import make_artifacts
+    def __init__(self, store: JobStore, settings: Settings, runtime: Runtime | None = None):
+        from quicknav_service.runtime import service_runtime
 
         self.store = store
         self.settings = settings
-        self.artifacts = make_artifacts(settings)
+        self.runtime = runtime if runtime is not None else service_runtime(settings)
+        self.artifacts = self.runtime.artifacts
+        self.limits = server_limits(settings)
 
     # ------------------------------------------------------------------ lookup
     def get(self, job_id: str) -> Job:
@@ -127,7 +131,7 @@ class JobsService:
             cfg = resolve_train(body)
         except ConfigError as e:
             raise Invalid(e.items) from None
-        if problems := check_train(cfg, self.settings, Origin(sent)):
+        if problems := admit(cfg, self.limits, self.runtime, Origin(sent).loc):
             raise Invalid(problems)
         return self._submit(JobKind.train, sent, cfg, key)
 
@@ -140,7 +144,7 @@ class JobsService:
             raise Invalid(e.items) from None
         origin = Origin(sent, fallback="space", shorthands=("trials", "parallel", "total_steps"),
                         prefix="base.")  # fmt: skip
-        if problems := check_sweep(cfg, self.settings, origin):
+        if problems := admit(cfg, self.limits, self.runtime, origin.loc):
             raise Invalid(problems)
         return self._submit(JobKind.sweep, sent, cfg, key)
 
@@ -164,7 +168,7 @@ class JobsService:
         except ConfigError as e:  # the library's name of the trained policy is the body's job_id
             raise Invalid([{**i, "loc": ["job_id"]} if i["loc"] == ["source"] else i
                            for i in e.items]) from None  # fmt: skip
-        if problems := check_eval(cfg, self.settings):
+        if problems := admit(cfg, self.limits, self.runtime):
             raise Invalid(problems)
         return self._submit(JobKind.eval, sent, cfg, key)
 

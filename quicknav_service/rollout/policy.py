@@ -24,8 +24,9 @@ from quicknav_client.proto.quicknav.v1 import rollout_pb2 as pb
 from quicknav_client.proto.quicknav.v1 import rollout_pb2_grpc as pb_grpc
 from quicknav_client.tensors import TensorError, decode, encode
 
+from quicknav_core.runtime import Runtime
 from quicknav_service import auth
-from quicknav_service.rollout.servicer import Refused, _is_plain_id, authenticate, bounded
+from quicknav_service.rollout.common import Refused, authenticate, bounded, is_plain_id, run_copy
 from quicknav_service.settings import Settings
 
 log = logging.getLogger("quicknav.policy")
@@ -38,15 +39,6 @@ def _padded(n: int) -> int:
 
 
 
-def run_copy(settings, job_id: str, field: str) -> Path | None:
-    """A train job's run folder from the artifact store (a local copy of an object store's);
-    UNAVAILABLE naming the store when it cannot be reached."""
-    from quicknav_service.artifacts import ArtifactUnavailable, make_artifacts
-
-    try:
-        return make_artifacts(settings).run_copy(job_id)
-    except ArtifactUnavailable as e:
-        raise Refused(grpc.StatusCode.UNAVAILABLE, f"{field}={job_id!r}: {e}") from None
 
 class LoadedPolicy:
     """One job's policy with its batcher: the jitted act and the queue of waiting requests."""
@@ -130,8 +122,12 @@ class PolicySession:
 class PolicyServicer(pb_grpc.PolicyServiceServicer):
     """Serves ``PolicyService.Act``; one instance per server, any number of streams."""
 
-    def __init__(self, settings: Settings, executor: ThreadPoolExecutor | None = None):
+    def __init__(self, settings: Settings, executor: ThreadPoolExecutor | None = None,
+                 runtime: Runtime | None = None):  # fmt: skip
+        from quicknav_service.runtime import service_runtime
+
         self.settings = settings
+        self.runtime = runtime if runtime is not None else service_runtime(settings)
         self.executor = executor or ThreadPoolExecutor(max_workers=4, thread_name_prefix="policy")
         self.auth_limiter = auth.FailureLimiter(settings.auth_failures_max,
                                                 settings.auth_failure_window_s)  # fmt: skip
@@ -194,7 +190,7 @@ class PolicyServicer(pb_grpc.PolicyServiceServicer):
             manifest_json=policy.manifest_json, rows=rows, obs_dim=policy.obs_dim))
 
     def _policy(self, job_id: str) -> LoadedPolicy:
-        run_dir = run_copy(self.settings, job_id, "load.job_id") if _is_plain_id(job_id) else None
+        run_dir = run_copy(self.runtime, job_id, "load.job_id") if is_plain_id(job_id) else None
         if run_dir is None:
             raise Refused(grpc.StatusCode.NOT_FOUND,
                           f"load.job_id={job_id!r}: no train job with a checkpoint by that id in this"
@@ -205,10 +201,20 @@ class PolicyServicer(pb_grpc.PolicyServiceServicer):
             return self.policies[job_id]
 
     def _build(self, run_dir: Path, job_id: str) -> LoadedPolicy:
+        from quicknav_core.admission import PolicyRequest, admit
         from quicknav_core.export import MANIFEST_FILE, manifest
-        from quicknav_core.train.run import load_run
+        from quicknav_core.train.run import load_run, read_config
+        from quicknav_service.jobs.limits import server_limits
+        from quicknav_service.rollout.start import describe
 
-        config, trainer, state, meta = load_run(run_dir)
+        # the door every config passes: this server's limits and memory, before anything loads
+        problems = admit(PolicyRequest(read_config(run_dir)), server_limits(self.settings),
+                         self.runtime, lambda path: ["load", "policy", *path.split(".")])  # fmt: skip
+        if problems:
+            code = (grpc.StatusCode.RESOURCE_EXHAUSTED if all(p.get("capacity") for p in problems)
+                    else grpc.StatusCode.FAILED_PRECONDITION)  # fmt: skip
+            raise Refused(code, f"load.job_id={job_id!r}: " + "; ".join(map(describe, problems)))
+        config, trainer, state, meta = load_run(run_dir, runtime=self.runtime)
         policy = trainer.policy(state)
         path = run_dir / MANIFEST_FILE
         text = path.read_text() if path.exists() else json.dumps(

@@ -9,7 +9,6 @@ another stream. JAX calls run on a thread pool, never on the event loop.
 from __future__ import annotations
 
 import asyncio
-import json
 import logging
 import uuid
 from concurrent.futures import ThreadPoolExecutor
@@ -19,44 +18,20 @@ from typing import Any
 
 import grpc
 import numpy as np
-from google.protobuf import json_format
 from quicknav_client.proto.quicknav.v1 import rollout_pb2 as pb
 from quicknav_client.proto.quicknav.v1 import rollout_pb2_grpc as pb_grpc
 from quicknav_client.tensors import TensorError, decode, encode
 
+from quicknav_core.runtime import Runtime
 from quicknav_service import auth
-from quicknav_service.jobs.limits import check_env, over_limit
+from quicknav_service.rollout.common import Refused, authenticate, bounded, is_plain_id, run_copy
+from quicknav_service.rollout.start import StartRequest, admit_start, read_start
 from quicknav_service.settings import Settings
 
 log = logging.getLogger("quicknav.rollout")
 
-_SPLITS = {pb.SPLIT_UNSPECIFIED: "train", pb.SPLIT_TRAIN: "train", pb.SPLIT_TEST: "test"}
 # Stepping this few envs costs less than the hop to a worker thread; they run inline.
 INLINE_MAX_ENVS = 64
-
-
-# A status message travels in HTTP/2 trailers (metadata): past a few kB it breaks the call.
-MAX_MESSAGE_CHARS = 2000
-
-
-def bounded(message: str) -> str:
-    """A status message cut to MAX_MESSAGE_CHARS (bad input is never echoed at length)."""
-    if len(message) <= MAX_MESSAGE_CHARS:
-        return message
-    return message[: MAX_MESSAGE_CHARS - 40] + f"... ({len(message):,} characters in all)"
-
-
-class Refused(Exception):
-    """A request the server refuses: ends the stream with ``code`` and ``message``."""
-
-    def __init__(self, code: grpc.StatusCode, message: str):
-        super().__init__(message)
-        self.code = code
-        self.message = message
-
-
-# Asynchronous mode: at most this many groups per stream
-MAX_GROUPS = 64
 
 
 @dataclass
@@ -103,99 +78,20 @@ def _transition(r, step_count: int, group: int = 0) -> pb.ServerMessage:
     )
 
 
-def _authorization(context: grpc.aio.ServicerContext) -> str | None:
-    """The call's ``authorization`` metadata as sent (``Bearer <token>``, as REST takes it)."""
-    for key, value in context.invocation_metadata() or ():
-        if key.lower() == "authorization" and isinstance(value, str):
-            return value
-    return None
-
-
-def _peer_host(context) -> str:
-    """The client's address without its port (``ipv4:127.0.0.1:5000`` -> ``127.0.0.1``)."""
-    peer = context.peer() or "unknown"
-    kind, _, rest = peer.partition(":")
-    if kind == "ipv6":
-        return rest.rsplit(":", 1)[0].strip("[]")
-    return rest.rsplit(":", 1)[0] if kind == "ipv4" else peer
-
-
-def parse_env_config(start: pb.Start, settings: Settings, base=None):
-    """The EnvConfig a Start carries (resolved like every env: fields or dotted keys on ``base``,
-    default the defaults), validated against the model and the server's limits."""
-    from quicknav_core.config import ConfigError, resolve_env
-    from quicknav_core.config.errors import format_items
-
-    which = start.WhichOneof("config")
-    if which == "config_json":
-        try:
-            fields = json.loads(start.config_json or "{}")
-        except json.JSONDecodeError as e:
-            raise Refused(grpc.StatusCode.INVALID_ARGUMENT,
-                          f"start.config_json is not valid JSON ({e})") from None  # fmt: skip
-        if not isinstance(fields, dict):
-            raise Refused(grpc.StatusCode.INVALID_ARGUMENT,
-                          "start.config_json must be a JSON object of EnvConfig fields")  # fmt: skip
-    elif which == "config_fields":
-        fields = _ints_where_integral(json_format.MessageToDict(start.config_fields))
-    else:
-        fields = {}
-    try:
-        config = resolve_env(fields, base)
-    except ConfigError as e:
-        raise Refused(
-            grpc.StatusCode.INVALID_ARGUMENT, format_items(e.items, prefix="start.config")
-        ) from None
-    problems = check_env(config, settings, lambda field: ["start", "config", field])
-    if problems:
-        raise Refused(grpc.StatusCode.INVALID_ARGUMENT,
-                      "; ".join(f"start.config.{p['msg']}" for p in problems))  # fmt: skip
-    return config
-
-
-def _ints_where_integral(value):
-    """protobuf Struct numbers are doubles: give integral ones back as ints (grid_size=8.0 -> 8)."""
-    if isinstance(value, dict):
-        return {k: _ints_where_integral(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_ints_where_integral(v) for v in value]
-    if isinstance(value, float) and value.is_integer() and abs(value) < 2**53:
-        return int(value)
-    return value
-
-
 def _box(low: np.ndarray, high: np.ndarray) -> pb.BoxSpec:
     return pb.BoxSpec(dtype="float32", shape=list(low.shape), low=encode(low), high=encode(high))
-
-
-async def authenticate(settings: Settings, limiter: auth.FailureLimiter, context) -> None:
-    """Abort the call unless it carries ``authorization: Bearer <token>`` (when the server has a
-    token); failures count per client address, as for REST."""
-    token = settings.api_token
-    if not token:
-        return
-    client = _peer_host(context)
-    wait = limiter.retry_after(client)
-    if wait is not None:
-        await context.abort(
-            grpc.StatusCode.RESOURCE_EXHAUSTED,
-            f"too many failed authentications from this address: retry in {wait} s"
-            " (QUICKNAV_AUTH_FAILURES_MAX per QUICKNAV_AUTH_FAILURE_WINDOW_S)",
-        )
-    if not auth.token_matches(_authorization(context), token):
-        limiter.failed(client)
-        await context.abort(
-            grpc.StatusCode.UNAUTHENTICATED,
-            "this server requires the API token: send call metadata"
-            " 'authorization: Bearer <token>' (the QUICKNAV_API_TOKEN of the service)",
-        )
 
 
 class RolloutServicer(pb_grpc.RolloutServiceServicer):
     """Serves ``RolloutService.Rollout``; one instance per server, any number of streams."""
 
-    def __init__(self, settings: Settings, executor: ThreadPoolExecutor | None = None):
+    def __init__(self, settings: Settings, executor: ThreadPoolExecutor | None = None,
+                 runtime: Runtime | None = None):  # fmt: skip
+        from quicknav_service.runtime import service_runtime
+
         self.settings = settings
+        # room banks (kept on the data disk), uploaded maps, compiled steppers: one per process
+        self.runtime = runtime if runtime is not None else service_runtime(settings)
         self.executor = executor or ThreadPoolExecutor(
             max_workers=min(32, settings.rollout_max_sessions + 2), thread_name_prefix="rollout"
         )
@@ -266,37 +162,9 @@ class RolloutServicer(pb_grpc.RolloutServiceServicer):
         if start.HasField("policy") and start.policy.job_id:
             # a trained job's episodes: the Start's fields apply to the env it was trained in
             policy_run = await asyncio.to_thread(self._policy_run, start.policy.job_id)
-        config = parse_env_config(start, s, policy_run[1] if policy_run else None)
-        if policy_run and config.obs_dim != policy_run[1].obs_dim:
-            trained = policy_run[1]
-            raise Refused(
-                grpc.StatusCode.INVALID_ARGUMENT,
-                f"start.config: the policy of job {start.policy.job_id} reads {trained.obs_dim}-long"
-                f" observations (lidar_beams={trained.lidar_beams}, observe_goal="
-                f"{trained.observe_goal}); these fields make them {config.obs_dim} long: keep"
-                " lidar_beams and observe_goal",
-            )
-        num_envs = start.num_envs or 1
-        if (msg := over_limit("num_envs", num_envs, s, "max_envs")) is not None:
-            raise Refused(grpc.StatusCode.RESOURCE_EXHAUSTED, f"start.{msg}")
-        message_bytes = 2 * num_envs * config.obs_dim * 4
-        if message_bytes > s.grpc_max_message_mb * 2**20:
-            raise Refused(
-                grpc.StatusCode.RESOURCE_EXHAUSTED,
-                f"start.num_envs={num_envs} with obs_dim={config.obs_dim} needs messages of up to"
-                f" {message_bytes / 2**20:.1f} MiB; this server allows {s.grpc_max_message_mb} MiB"
-                " (QUICKNAV_GRPC_MAX_MESSAGE_MB): use fewer envs or beams per stream",
-            )
-        if start.split not in _SPLITS:
-            raise Refused(
-                grpc.StatusCode.INVALID_ARGUMENT,
-                f"start.split={start.split}: allowed values are SPLIT_TRAIN (1) and SPLIT_TEST (2)",
-            )
-        if start.seed >= 2**63:
-            raise Refused(
-                grpc.StatusCode.INVALID_ARGUMENT,
-                f"start.seed={start.seed}: allowed range 0..{2**63 - 1}",
-            )
+        req = read_start(start, policy_run[1] if policy_run else None)
+        # every door's admission (limits, rooms, memory): off the event loop, it may read maps
+        await self._run(admit_start, req, s, self.runtime)
         if self.active_sessions >= s.rollout_max_sessions:
             raise Refused(
                 grpc.StatusCode.RESOURCE_EXHAUSTED,
@@ -306,64 +174,42 @@ class RolloutServicer(pb_grpc.RolloutServiceServicer):
             )
         self.active_sessions += 1
         session.counted = True
-        split = _SPLITS[start.split]
-        groups = start.groups or 1
-        if groups > 1 and policy_run:
-            raise Refused(grpc.StatusCode.INVALID_ARGUMENT,
-                          "start.groups applies to stepping envs, not to policy mode; send 0")  # fmt: skip
-        if groups > min(MAX_GROUPS, num_envs) or num_envs % groups:
-            raise Refused(
-                grpc.StatusCode.INVALID_ARGUMENT,
-                f"start.groups={groups} with num_envs={num_envs}: allowed a divisor of num_envs"
-                f" up to {min(MAX_GROUPS, num_envs)} (1 = lock-step)",
-            )
         if policy_run:
-            if num_envs > s.rollout_policy_max_envs:
-                raise Refused(
-                    grpc.StatusCode.RESOURCE_EXHAUSTED,
-                    f"start.num_envs={num_envs} in policy mode; allowed range"
-                    f" 1..{s.rollout_policy_max_envs} (QUICKNAV_ROLLOUT_POLICY_MAX_ENVS)",
-                )
-            await self._stream_policy(session, start, policy_run[0], config, num_envs, split,
-                                      context)  # fmt: skip
+            await self._stream_policy(session, req, policy_run[0], context)
             return True
-
-        from quicknav_core.env.batch import BatchedEnv
+        session.env, session.groups, obs = await self._run(self._build, req)
+        session.group_steps = [0] * len(session.groups)
         from quicknav_core.env.constants import observation_bounds
 
-        def build():
-            from quicknav_core.env.rooms import set_bank_cache
-
-            set_bank_cache(s.data_dir / "room-banks")  # a bank is carved once per config
-            from quicknav_service.maps import install_resolver
-
-            install_resolver(s)  # a Start may name uploaded maps (map:<id>)
-            if groups == 1:
-                env = BatchedEnv(config, num_envs, seed=start.seed % 2**32, split=split)
-                return env, [], env.reset()
-            k = num_envs // groups
-            envs = [BatchedEnv(config, k, seed=group_seed(start.seed, g), split=split)
-                    for g in range(groups)]  # fmt: skip
-            return None, envs, np.concatenate([e.reset() for e in envs])
-
-        session.env, session.groups, obs = await self._run(build)
-        session.group_steps = [0] * len(session.groups)
-        low, high = observation_bounds(config)
+        low, high = observation_bounds(req.env)
         await context.write(
             pb.ServerMessage(
                 started=pb.Started(
                     session_id=session.id,
-                    num_envs=num_envs,
+                    num_envs=req.num_envs,
                     observation_space=_box(low, high),
                     action_space=_box(-np.ones(2, np.float32), np.ones(2, np.float32)),
                     observations=encode(obs),
-                    env_config_json=config.model_dump_json(),
-                    max_steps=config.max_steps,
-                    groups=groups,
+                    env_config_json=req.env.model_dump_json(),
+                    max_steps=req.env.max_steps,
+                    groups=req.groups,
                 )
             )
         )
         return False
+
+    def _build(self, req: StartRequest):
+        """The stream's envs (one batch, or a batch per group) and their first observations."""
+        from quicknav_core.env.batch import BatchedEnv
+
+        if req.groups == 1:
+            env = BatchedEnv(req.env, req.num_envs, seed=req.seed % 2**32, split=req.split,
+                             runtime=self.runtime)  # fmt: skip
+            return env, [], env.reset()
+        k = req.num_envs // req.groups
+        envs = [BatchedEnv(req.env, k, seed=group_seed(req.seed, g), split=req.split,
+                           runtime=self.runtime) for g in range(req.groups)]  # fmt: skip
+        return None, envs, np.concatenate([e.reset() for e in envs])
 
     def _actions(self, n: int, step: pb.Step) -> np.ndarray:
         if not step.HasField("actions"):
@@ -492,9 +338,8 @@ class RolloutServicer(pb_grpc.RolloutServiceServicer):
     def _policy_run(self, job_id: str):
         """(run folder, the env it trained in) of a train job with a checkpoint, or NOT_FOUND."""
         from quicknav_core.train.run import read_config
-        from quicknav_service.rollout.policy import run_copy
 
-        run_dir = run_copy(self.settings, job_id, "start.policy.job_id") if _is_plain_id(job_id) else None
+        run_dir = run_copy(self.runtime, job_id, "start.policy.job_id") if is_plain_id(job_id) else None
         if run_dir is None:
             raise Refused(
                 grpc.StatusCode.NOT_FOUND,
@@ -503,11 +348,9 @@ class RolloutServicer(pb_grpc.RolloutServiceServicer):
             )
         return run_dir, read_config(run_dir).env
 
-    async def _stream_policy(self, session, start, run_dir, config, num_envs, split, context) -> None:
-        ep = await self._run(
-            _policy_episodes, run_dir, config, num_envs, start.seed % 2**31, split,
-            not start.policy.stochastic,
-        )  # fmt: skip
+    async def _stream_policy(self, session, req: StartRequest, run_dir: Path, context) -> None:
+        num_envs = req.num_envs
+        ep = await self._run(_policy_episodes, run_dir, req, self.runtime)
         steps = int(ep.steps.max())
         for t in range(steps + 1):
             done = ep.steps <= t if t else np.zeros(num_envs, bool)  # ended after `steps` actions
@@ -533,19 +376,14 @@ class RolloutServicer(pb_grpc.RolloutServiceServicer):
         )
 
 
-def _is_plain_id(job_id: str) -> bool:
-    return bool(job_id) and all(c.isalnum() or c in "-_" for c in job_id) and len(job_id) <= 64
-
-
-def _policy_episodes(run_dir: Path, env_config, num_envs: int, seed: int, split: str,
-                     deterministic: bool):  # fmt: skip
-    """One episode per env of a trained job's policy in ``env_config`` (the Start's fields on the
-    env it trained in), with per-step poses, lidar and actions."""
+def _policy_episodes(run_dir: Path, req: StartRequest, runtime: Runtime):
+    """One episode per env of a trained job's policy in the Start's env (its fields on the env it
+    trained in), with per-step poses, lidar and actions."""
     from quicknav_core.config import EvalConfig
     from quicknav_core.eval.evaluate import agent_from_run, run_episodes
 
-    agent, _, _ = agent_from_run(run_dir)
-    env, params = env_config.build(split)
-    cfg = EvalConfig(episodes=num_envs, seed=seed, deterministic=deterministic,
-                     gif_episodes=num_envs)  # fmt: skip
-    return run_episodes(env, params, agent, cfg)
+    agent, _, _ = agent_from_run(run_dir, runtime)
+    env, params = req.env.build(req.split, runtime)
+    cfg = EvalConfig(episodes=req.num_envs, seed=req.seed % 2**31, deterministic=not req.stochastic,
+                     gif_episodes=req.num_envs)  # fmt: skip
+    return run_episodes(env, params, agent, cfg, runtime=runtime)

@@ -11,6 +11,11 @@ belong to a journey and runs their lines one by one, as they are written, with t
 - ``uv run quicknav serve`` starts in the background on free ports, told them the way a user tells
   it (``QUICKNAV_PORT``, ``QUICKNAV_GRPC_PORT``, ``QUICKNAV_DATA_DIR``); ``localhost:8000`` in a
   command becomes that address, and the ``quicknav jobs`` commands find it through ``QUICKNAV_URL``.
+  The journeys of one test module share one such service (``Runner.attach``): a journey's own
+  ``serve`` line then finds it running.
+- ``uv run quicknav train --preset demo``, where a test hands the runner the test run's trained
+  demo (``trained``): ``tests/trained.py`` ran this very command once for the whole test run, and
+  its run folder is copied where the command writes it (one training to target per test run).
 - ``<id>`` is the job id the command before printed, cut to its first 8 characters (the short id
   a user copies); ``<run-dir>`` is the run folder ``quicknav train`` printed; ``<map-id>`` the map
   id ``quicknav maps upload`` printed.
@@ -134,6 +139,14 @@ class Runner:
     map_id: str | None = None
     history: list[Ran] = field(default_factory=list)
     server: subprocess.Popen | None = None
+    shared: Runner | None = None  # the module's service this runner's commands talk to
+    trained: dict[str, Path] = field(default_factory=dict)  # command -> the run folder it made
+
+    def attach(self, service: Runner) -> Runner:
+        """Talk to ``service`` (a running ``quicknav serve`` of another runner) instead of
+        starting one."""
+        self.port, self.grpc_port, self.shared = service.port, service.grpc_port, service
+        return self
 
     @property
     def url(self) -> str:
@@ -168,6 +181,8 @@ class Runner:
         if words[:4] == ["uv", "run", "quicknav", "serve"]:
             self.start_server(command)
             return None
+        if " ".join(words) in self.trained:
+            return self.trained_stand_in(command, self.trained[" ".join(words)])
         assert words[:3] == ["uv", "run", "quicknav"] or words[0] == "curl", (
             f"the journey runner does not know how to run {command!r}"
         )
@@ -202,7 +217,23 @@ class Runner:
         self.history.append(result)
         return result
 
+    def trained_stand_in(self, command: str, run: Path) -> Ran:
+        """The run folder ``command`` makes, copied from where the test run's one training of it
+        left it (see the module's docstring)."""
+        import shutil
+
+        target = self.workdir / "runs" / run.name
+        shutil.copytree(run, target)
+        self.run_dir = str(target.relative_to(self.workdir))
+        result = Ran(command, f"(the test run's trained demo: {run})", 0,
+                     f"run folder: {self.run_dir}\n", "", 0.0)  # fmt: skip
+        self.history.append(result)
+        return result
+
     def start_server(self, command: str) -> None:
+        if self.shared is not None:  # the module's service already runs this command
+            assert httpx.get(f"{self.url}/healthz", timeout=5).status_code == 200
+            return
         assert self.server is None, "the journey starts the service twice"
         self.server = subprocess.Popen(["bash", "-c", f"exec {command.partition(' #')[0]}"],
                                        cwd=self.workdir, env=self.env(), stdout=subprocess.PIPE,

@@ -102,9 +102,6 @@ def api(tmp_path_factory):
         job = client.post("/jobs/train", json={"preset": "demo"}).json()["id"]
         client.post(f"/jobs/{job}/cancel", json={})
         yield client, job
-    from quicknav_core.env.maps import set_map_resolver
-
-    set_map_resolver(None)  # the app let this process read its uploaded maps
 
 
 def _curl(api, block: Block, line: str) -> None:

@@ -4,8 +4,14 @@ agent (evaluation of a good policy once failed while every part's own test passe
 
 - quick start: ``quicknav serve``; demo train with ``--follow``; eval of that job by its short
   id, held-out success >= 0.9; its artifacts listed and downloaded; the curl examples, each with
-  its HTTP status; no command prints a warning, no job carries one.
-- in-process: ``quicknav env demo``, ``quicknav train --preset demo``, ``quicknav eval RUN_DIR``.
+  its HTTP status; no command prints a warning, no job carries one. This is the journey that trains
+  the demo to its target from README's text.
+- in-process: ``quicknav env demo``, ``quicknav train --preset demo`` (the test run's one training
+  of that command, ``tests/trained.py``), ``quicknav eval RUN_DIR`` (held-out success >= 0.9), the
+  robustness eval, ``quicknav export``.
+
+The service journeys of this module share one ``quicknav serve`` (started as README says, on free
+ports); its log is checked for tracebacks when the module ends.
 
 The long runs are ``slow`` (CI runs them after the fast suite); that README still marks its
 journeys, and that the runner knows how to run every line of them, is checked in the fast suite.
@@ -76,6 +82,24 @@ def test_readme__journey_blocks_are_found_in_reading_order(tmp_path):
 
 
 # --------------------------------------------------------------------------- slow: walked
+@pytest.fixture(scope="module")
+def service(tmp_path_factory):
+    """The module's one ``uv run quicknav serve`` (README's command), for every service journey."""
+    r = Runner(workdir=tmp_path_factory.mktemp("service"), port=free_port(), grpc_port=free_port())
+    started = False
+
+    def start():
+        nonlocal started
+        if not started:
+            r.start_server("uv run quicknav serve")
+            started = True
+        return r
+
+    yield start
+    log = r.stop()
+    assert "Traceback" not in log, log[-4000:]
+
+
 @pytest.fixture
 def runner(tmp_path):
     r = Runner(workdir=tmp_path, port=free_port(), grpc_port=free_port())
@@ -109,8 +133,9 @@ def assert_policy_folder(folder, held_out: float | None) -> None:
         assert doc["held_out"]["success_rate"] >= held_out, doc["held_out"]
 
 
-@pytest.mark.slow  # serves, trains the demo twice (CLI, then curl) and evaluates: ~4 min on 2 cores
-def test_journey__quick_start(runner):
+@pytest.mark.slow  # trains the demo twice (CLI, then curl) and evaluates: ~1-2 min on 2 cores
+def test_journey__quick_start(runner, service):
+    runner.attach(service())
     evaluated = train_id = None
     for command in commands("quickstart"):
         ran = runner.run(command)
@@ -165,12 +190,11 @@ def test_journey__quick_start(runner):
     assert evaluated is not None, "the quick start has no eval"
     ran_commands = [r.command for r in runner.history]
     assert len(ran_commands) == len(commands("quickstart")) - 2  # all but `uv sync` and `serve`
-    log = runner.stop()
-    assert "Traceback" not in log, log[-4000:]
 
 
-@pytest.mark.slow  # trains the demo in-process and evaluates it: ~2 min on 2 cores
-def test_journey__in_process(runner):
+@pytest.mark.slow  # evaluates the trained demo in-process, with robustness, and exports it: ~1 min
+def test_journey__in_process(runner, trained_demo_run):
+    runner.trained["uv run quicknav train --preset demo"] = trained_demo_run
     for command in commands("in-process"):
         ran = runner.run(command)
         if ran is None:
@@ -213,9 +237,9 @@ def assert_robustness(result: dict, printed: str) -> None:
     assert result["warnings"] == [] and "robustness" in printed and "latency 3 steps" in printed
 
 
-@pytest.mark.slow  # the service pages (docs/service.md, sdk.md, grpc.md) on one live server: ~3 min
-def test_journey__the_service_pages_curl_sdk_and_grpc(runner):
-    runner.start_server("uv run quicknav serve")
+@pytest.mark.slow  # the service pages (docs/service.md, sdk.md, grpc.md) on the live server: ~1 min
+def test_journey__the_service_pages_curl_sdk_and_grpc(runner, service):
+    runner.attach(service())
     for _, command, ran in walk(runner, "service-http"):
         assert ran.code == 0, str(ran)
         status = http_status(ran)
@@ -244,15 +268,13 @@ def test_journey__the_service_pages_curl_sdk_and_grpc(runner):
 
     (grpc,) = walk(runner, "grpc")
     assert grpc[2].code == 0, str(grpc[2])
-    log = runner.stop()
-    assert "Traceback" not in log, log[-4000:]
 
 
-def test_journey__the_service_pages_maps(runner):
+def test_journey__the_service_pages_maps(runner, service):
     """docs/service.md's maps journey: upload the shipped office map, list it, draw it, and run the
     oracle on it as an eval job (every goal reached: the map's rooms are connected and drivable)."""
     (runner.workdir / "examples").symlink_to(ROOT / "examples")  # the page's paths, from a checkout
-    runner.start_server("uv run quicknav serve")
+    runner.attach(service())
     ran = walk(runner, "maps")
     for _, _, result in ran:
         ok(result)
@@ -263,5 +285,3 @@ def test_journey__the_service_pages_maps(runner):
     job = httpx.get(f"{runner.url}/jobs/{runner.last_id}").json()
     assert job["status"] == "succeeded" and job["config"]["env"]["maps"]["train"] == [f"map:{runner.map_id}"]
     assert job["result"]["metrics"]["success_rate"] == 1.0, job["result"]["metrics"]
-    log = runner.stop()
-    assert "Traceback" not in log, log[-4000:]

@@ -356,12 +356,12 @@ def test_pictures_that_fail__jobs_succeed_with_their_numbers_and_a_warning_for_e
     and eval jobs still succeed, their numbers are stored and served, and each job names every
     missing picture in its warnings."""
     from quicknav_core.eval import pictures
-    from quicknav_core.train import run as train_run
+    from quicknav_core.train import pictures as train_pictures
 
     def broken(*args, **kwargs):
         raise ValueError("'yerr' must not contain negative values")
 
-    monkeypatch.setattr(train_run, "plot_learning_curve", broken)
+    monkeypatch.setattr(train_pictures, "draw_learning_curve", broken)
     for name in ("draw_trajectories", "draw_difficulty", "draw_gif"):
         monkeypatch.setattr(pictures, name, broken)
     with LiveServer(tmp_path, export_policies=True) as live:

@@ -1,16 +1,25 @@
-"""The server's env limits are checked in one place and say the same thing at every door."""
+"""The server's limits are checked in one place (``quicknav_core.admission.admit``) and say the
+same thing at every door."""
 
 import json
 
 import pytest
 from quicknav_client.proto.quicknav.v1 import rollout_pb2 as pb
 
-from quicknav_service.jobs.limits import check_env
+from quicknav_core.admission import RolloutRequest, admit
+from quicknav_service.jobs.limits import server_limits
 from quicknav_service.jobs.service import Invalid, JobsService
 from quicknav_service.jobs.sqlite_store import SQLiteJobStore
-from quicknav_service.rollout.servicer import Refused, parse_env_config
+from quicknav_service.rollout.common import Refused
+from quicknav_service.rollout.start import admit_start, read_start
+from quicknav_service.runtime import service_runtime
 from quicknav_service.schemas import EvalJobCreate, TrainJobCreate
 from quicknav_service.settings import Settings
+
+
+def start_admitted(start: pb.Start, settings: Settings) -> None:
+    """What the Rollout servicer does with a Start before building anything."""
+    admit_start(read_start(start), settings, service_runtime(settings))
 
 
 @pytest.fixture
@@ -32,7 +41,7 @@ def test_limits__train_eval_and_a_rollout_start_refuse_the_same_grid_in_the_same
         jobs.submit_eval(EvalJobCreate(policy="oracle", env={"grid_size": 40, "room_size": 20}))
     assert [(i["loc"], i["msg"]) for i in evaluation.value.items] == [(["env", "grid_size"], want)]
     with pytest.raises(Refused) as start:
-        parse_env_config(pb.Start(config_json=json.dumps({"grid_size": 40, "room_size": 20, "lidar_beams": 80})), settings)
+        start_admitted(pb.Start(config_json=json.dumps({"grid_size": 40, "room_size": 20, "lidar_beams": 80})), settings)
     assert str(start.value.message) == (
         f"start.config.{want}; start.config.lidar_beams=80 exceeds this server's limit"
         " max_lidar_beams=64 (QUICKNAV_MAX_LIDAR_BEAMS); allowed range 1..64"
@@ -43,7 +52,8 @@ def test_limits__an_env_within_them_passes(service):
     from quicknav_core.config import EnvConfig
 
     settings, _ = service
-    assert check_env(EnvConfig(grid_size=32, room_size=16, lidar_beams=64), settings, lambda f: [f]) == []
+    request = RolloutRequest(EnvConfig(grid_size=32, room_size=16, lidar_beams=64), num_envs=16)
+    assert admit(request, server_limits(settings), service_runtime(settings)) == []
 
 
 def test_limits__floor_plans_run_through_the_service_and_map_files_on_the_clients_disk_are_refused(service):
@@ -57,5 +67,5 @@ def test_limits__floor_plans_run_through_the_service_and_map_files_on_the_client
     [item] = refused.value.items
     assert item["loc"] == ["overrides", "env.maps", "train", 0] and "POST /maps" in item["msg"]
     with pytest.raises(Refused, match="is a file on your disk"):
-        parse_env_config(pb.Start(config_json=json.dumps(
+        start_admitted(pb.Start(config_json=json.dumps(
             {"rooms": "maps", "maps": {"train": ["x.yaml"]}})), settings)  # fmt: skip

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from quicknav_core.env.maps import load_map, set_map_resolver
+from quicknav_core.env.maps import load_map
 from tests.service.conftest import LiveServer
 from tests.service.test_api import TINY, wait_status
 
@@ -60,7 +60,6 @@ def upload(url: str, files: list[tuple[str, bytes]], **form) -> httpx.Response:
 def server(tmp_path):
     with LiveServer(tmp_path, max_map_pixels=400_000) as s:
         yield s
-    set_map_resolver(None)  # the service installed its store's resolver in this process
 
 
 def test_upload__read_back_as_the_env_reads_it(server, tmp_path):
@@ -175,7 +174,6 @@ def test_upload__body_over_the_upload_limit_is_413(tmp_path):
     with LiveServer(tmp_path, max_map_upload_bytes=50_000) as s:
         r = upload(s.url, [("room.pgm", pgm(room_picture()) + b"\0" * 60_000)], resolution=RES)
         assert r.status_code == 413 and "QUICKNAV_MAX_MAP_UPLOAD_BYTES" in r.json()["detail"]
-    set_map_resolver(None)
 
 
 def test_configs_name_maps_by_id__checked_at_submission(server):
@@ -278,7 +276,6 @@ def test_rollout_start_on_an_uploaded_map_steps_as_the_env_on_the_file(tmp_path)
         del jnp
     finally:
         srv.stop()
-        set_map_resolver(None)
 
 
 def _write_map(folder) -> None:

@@ -3,7 +3,8 @@ Playwright) against a live `quicknav serve` with a token set. It signs in, sees 
 error of a form at once, submits the demo preset through the form, watches the curve grow and the
 job succeed, and from that job's page runs an eval, reads its metrics table (held-out success
 >= 0.9: a policy that learned) and plays its replay; it follows a sweep, sees a failed job's reason,
-and cancels and deletes from the jobs page. One demo job is trained per module and shared.
+and cancels and deletes from the jobs page. The policy that learned is the test run's one trained
+demo (``tests/trained.py``), put into this server's store as a succeeded train job.
 
 Screenshots go to $QUICKNAV_SCREENSHOTS (or a pytest temporary folder); the test prints where.
 Never skipped: without Chromium it fails and says how to install it."""
@@ -66,9 +67,10 @@ def shots(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def demo(server):
-    """The module's one trained demo job: the form test trains it; a test run alone trains it here."""
-    return {}
+def demo(server, data_dir):
+    """The module's trained demo job, seeded from the test run's trained demo when a test first
+    needs it (the first tests see an empty server)."""
+    return {"data_dir": data_dir}
 
 
 def wait_for_job(server: str, job_id: str, timeout_s: float = JOB_TIMEOUT_MS / 1000) -> dict:
@@ -81,11 +83,19 @@ def wait_for_job(server: str, job_id: str, timeout_s: float = JOB_TIMEOUT_MS / 1
 
 
 def trained_demo(server: str, demo: dict) -> str:
-    """The id of the succeeded demo train job (the preset as it is: a policy that learns)."""
+    """The id of a succeeded demo train job whose policy learned: the test run's trained demo
+    (``tests/trained.py``), put into this server's store and artifacts."""
     if "id" not in demo:
-        job = httpx.post(server + "/jobs/train", headers=AUTH, json={"preset": "demo"}).json()
-        assert wait_for_job(server, job["id"])["status"] == "succeeded"
-        demo["id"] = job["id"]
+        from quicknav_service.jobs.sqlite_store import SQLiteJobStore
+        from tests.trained import seed_trained_job
+        from tests.trained import trained_demo as trained_run
+
+        store = SQLiteJobStore(demo["data_dir"] / "jobs.db")
+        try:
+            demo["id"] = seed_trained_job(store, demo["data_dir"] / "artifacts", trained_run())
+        finally:
+            store.close()
+        assert wait_for_job(server, demo["id"], 10)["status"] == "succeeded"
     return demo["id"]
 
 
@@ -165,19 +175,22 @@ def test_browser__form_shows_every_field_error_at_once(server, page, shots):
     assert jobs["count"] == 0
 
 
-def test_browser__submitted_job_grows_its_curve_and_succeeds(server, page, shots, demo):
+def test_browser__submitted_job_grows_its_curve_and_succeeds(server, page, shots):
     page.goto(server + "/ui/submit")
     page.wait_for_selector("#submit-form")
     page.select_option("#preset", "demo")
-    demo_steps = httpx.get(server + "/presets", headers=AUTH).json()["demo"]["resolved"]["total_steps"]
-    page.fill("#f-total_steps", str(demo_steps))  # the preset's own budget: a policy that learns
+    # eight chunks of the demo preset: a curve that grows while the page watches (the policy that
+    # learned, for the tests after this one, is the test run's trained demo)
+    steps = 8 * 16_384
+    page.fill("#f-total_steps", str(steps))
     page.fill("#f-env\\.grid_size", "")
-    page.fill("#f-overrides", "chunk_steps=65536")
+    page.fill("#f-overrides", "chunk_steps=16384")
     page.click("#submit")
     page.wait_for_url("**/ui/jobs/*", timeout=20_000)
     job_id = page.url.rsplit("/", 1)[-1]
     job = httpx.get(f"{server}/jobs/{job_id}", headers=AUTH).json()
-    assert job["config"]["total_steps"] == demo_steps and job["config"]["chunk_steps"] == 65536
+    assert job["config"]["total_steps"] == steps and job["config"]["chunk_steps"] == 16_384
+    assert job["request"]["preset"] == "demo"
 
     # watch the curve while the job runs: the number of points it draws, as the page says
     seen: list[tuple[str, int]] = []
@@ -207,7 +220,6 @@ def test_browser__submitted_job_grows_its_curve_and_succeeds(server, page, shots
     widths = page.eval_on_selector("#events", "e => [e.scrollWidth, e.clientWidth]")
     assert widths[0] <= widths[1], widths
     page.screenshot(path=shots / "job-succeeded.png", full_page=True)
-    demo["id"] = job_id
 
 
 def test_browser__replay_of_the_trained_policy_advances_frames(server, page, shots, demo):

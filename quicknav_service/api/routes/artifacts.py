@@ -8,6 +8,7 @@ from pathlib import PurePosixPath
 from fastapi import APIRouter, Depends, HTTPException
 from fastapi.responses import FileResponse, Response, StreamingResponse
 
+from quicknav_core.layout import RUN
 from quicknav_service.api.deps import JobId, JobsDep, require_token
 from quicknav_service.api.errors import AUTH, STORE, responses
 from quicknav_service.artifacts import RemoteFile, bad_name
@@ -32,7 +33,7 @@ def job_metrics(job_id: JobId, jobs: JobsDep) -> JobMetricsPublic:
     """One row per training chunk (the job's metrics.jsonl; on an object store, as of its last
     published checkpoint)."""
     job = jobs.get(job_id)
-    data = jobs.artifacts.read_bytes(job.id, "metrics.jsonl") or b""
+    data = jobs.artifacts.read_bytes(job.id, RUN.metrics) or b""
     rows = [json.loads(x) for x in data.decode().splitlines() if x.strip()]
     return JobMetricsPublic(job_id=job.id, metrics=rows)
 

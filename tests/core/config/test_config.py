@@ -66,7 +66,7 @@ def test_config__unknown_field_rejected():
 
 def test_config__a_robot_wider_than_a_cell_is_a_config_not_an_error():
     # grid 64 in an 8 m room makes 0.125 m cells: the 0.3 m robot spans several, and drives where
-    # it fits (tests/core/test_wide_robot.py); the config says how far its disc reaches
+    # it fits (tests/core/env/test_wide_robot.py); the config says how far its disc reaches
     assert EnvConfig(grid_size=64).collision_reach == 2
     assert EnvConfig().collision_reach == 0  # narrower than a cell: the four-cell test
 

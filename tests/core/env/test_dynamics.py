@@ -6,7 +6,7 @@ import pytest
 from quicknav_core.config import EnvConfig
 from quicknav_core.env.bits import pack_rows
 from quicknav_core.env.dynamics import disc_overlaps_wall, move_with_sliding, wheel_command
-from tests.core.reference import disc_wall_clearance
+from tests.core.env.reference import disc_wall_clearance
 
 
 def _open_room(g=8):

@@ -10,7 +10,7 @@ import pytest
 
 from quicknav_core.config import EnvConfig
 from quicknav_core.env.lidar import beam_angles
-from tests.core.reference import brute_force_lidar
+from tests.core.env.reference import brute_force_lidar
 
 
 def test_reset__first_observation_has_the_real_lidar(default_env, default_config):
@@ -127,7 +127,8 @@ def test_test_split_uses_held_out_bank(small_config):
 def test_numpy_twin_does_not_import_jax():
     code = (
         "import sys; import quicknav_core.env.numpy_env as m; "
-        "env = m.QuickNavNumpyEnv(); env.reset(seed=0); env.step([1.0, 1.0]); "
+        "from quicknav_core.config.env import EnvConfig; "
+        "env = m.QuickNavNumpyEnv(EnvConfig()); env.reset(seed=0); env.step([1.0, 1.0]); "
         "assert not any(k == 'jax' or k.startswith('jax.') for k in sys.modules), 'jax imported'"
     )
     subprocess.run([sys.executable, "-c", code], check=True)

@@ -74,7 +74,7 @@ def test_pages__readme_and_the_performance_page_show_the_recorded_table():
     by `quicknav bench time-to-target --report --write-to PAGE`), so the two cannot drift."""
     from pathlib import Path
 
-    root = Path(__file__).resolve().parents[2]
+    root = Path(__file__).resolve().parents[3]
     results = root / "benchmarks/results"
     table = ttt.report(results / "time_to_target.json", results / "time_to_target_peers.json")
     for page in ("README.md", "docs/performance.md"):

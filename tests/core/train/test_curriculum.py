@@ -11,7 +11,7 @@ from pydantic import ValidationError
 
 from quicknav_core.config import CurriculumConfig, EnvConfig, TrainConfig, resolve_train
 from quicknav_core.train.curriculum import draw_episodes, first_level, make_pool, with_pool
-from tests.core.reference import grid_dijkstra
+from tests.core.env.reference import grid_dijkstra
 
 ENV = EnvConfig(grid_size=8, train_rooms=24, test_rooms=8, lidar_beams=8, max_steps=30)
 

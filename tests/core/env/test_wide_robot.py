@@ -16,6 +16,7 @@ from quicknav_core.env.bits import pack_rows_np
 from quicknav_core.env.clearance import check_fit, reach_cells, spawn_cells, spawn_region
 from quicknav_core.env.dynamics import disc_overlaps_wall_bits
 from quicknav_core.env.numpy_env import QuickNavNumpyEnv, disc_overlaps_wall_np
+from quicknav_core.env.room_sources import room_source
 
 # 0.25 m cells, a 0.4 m wide robot, floor plans with doors and a corridor 3 cells (0.75 m) wide
 WIDE = dict(rooms="floorplan", grid_size=32, room_size=8.0, robot_radius=0.2, train_rooms=64,
@@ -143,6 +144,7 @@ def test_oracle__reaches_every_goal_with_the_wide_robot(wide):
 
 def test_a_robot_that_fits_in_no_room_is_refused_naming_its_radius():
     with pytest.raises(ValueError, match=r"robot_radius: a robot of radius 0\.9 m fits in fewer than two cells"):
-        check_fit(EnvConfig(grid_size=8, robot_radius=0.9, train_rooms=64, test_rooms=16))
+        wide = EnvConfig(grid_size=8, robot_radius=0.9, train_rooms=64, test_rooms=16)
+        check_fit(wide, room_source(wide))
     # a narrow robot: nothing built here, nothing to refuse
-    check_fit(EnvConfig(grid_size=8))
+    check_fit(EnvConfig(grid_size=8), room_source(EnvConfig(grid_size=8)))

@@ -7,7 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from quicknav_core.eval.aggregate import draw_profiles, interval, iqm, mean, performance_profile
+from quicknav_core.eval.aggregate import interval, iqm, mean, performance_profile
+from quicknav_core.eval.pictures import draw_profiles
 
 
 def test_iqm__is_the_mean_of_the_middle_half():

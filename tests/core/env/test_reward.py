@@ -75,12 +75,13 @@ def test_reward__circling_near_the_goal_outearns_reaching_it_only_under_the_pape
     from types import SimpleNamespace
 
     from quicknav_core.config.env import RewardConfig
-    from quicknav_core.env.reward import reward_numbers, reward_terms, total_reward
+    from quicknav_core.env.reward import reward_terms, total_reward
+    from quicknav_core.markers import traced_values
 
     gamma = 0.99
 
     def discounted_return(dists, reward):  # dists[0] is the start, one step per later entry
-        params = SimpleNamespace(max_wheel_speed=1.0, dt=0.1, **reward_numbers(reward))
+        params = SimpleNamespace(max_wheel_speed=1.0, dt=0.1, **traced_values(reward))
         total = 0.0
         for t in range(1, len(dists)):
             reached = dists[t] <= 0.3

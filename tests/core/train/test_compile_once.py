@@ -1,6 +1,6 @@
 """Compile once per shape: configs that differ only in numbers (reward weights, speeds, the room
-bank's seed) share compiled code, in the env and in the trainers; numbers are never baked into a
-program another config reuses."""
+bank's seed) share compiled code, in the env and in the trainers of one runtime; numbers are never
+baked into a program another config reuses."""
 
 from __future__ import annotations
 
@@ -49,10 +49,12 @@ TINY = {"env.grid_size": 8, "env.train_rooms": 8, "env.test_rooms": 8, "env.lida
 
 @pytest.mark.parametrize("preset,probe", [("paper-ppo", "rejax"), ("paper-mlp", "recurrent")])
 def test_trainers__runs_that_differ_only_in_numbers_compile_once(preset, probe):
+    from quicknav_core.runtime import Runtime
     from quicknav_core.train import trainers
     from quicknav_core.train.recurrent_ppo import RecurrentPPO
 
     compiled = trainers._rejax_unit if probe == "rejax" else RecurrentPPO.train_chunk
+    runtime = Runtime()  # the process's (a worker's): what makes rejax's optimisers shareable
     runs = []
     # rejax's optimiser is a closure over its learning rate (a compile constant there): only
     # QuickNav's PPO varies it here
@@ -61,7 +63,7 @@ def test_trainers__runs_that_differ_only_in_numbers_compile_once(preset, probe):
         numbers["algorithm.learning_rate"] = 1e-2
     for extra in ({}, numbers):
         cfg = resolve_train({"preset": preset, "overrides": {**TINY, **extra}})
-        trainer = trainers.make_trainer(cfg)
+        trainer = trainers.make_trainer(cfg, runtime)
         runs.append((trainer, trainer.init_state()))
     before = compiled._cache_size()
     for trainer, state in runs:

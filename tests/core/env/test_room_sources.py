@@ -17,7 +17,7 @@ from pydantic import ValidationError
 from quicknav_core.config import EnvConfig
 from quicknav_core.env.floorplan import floorplan_bank
 from quicknav_core.env.maps import MapError, load_map, to_cells
-from quicknav_core.env.room_sources import source_bank
+from quicknav_core.env.room_sources import room_source
 
 
 def bfs_component(walls: np.ndarray) -> set[tuple[int, int]]:
@@ -39,8 +39,8 @@ FLOOR = EnvConfig(rooms="floorplan", grid_size=24, room_size=12.0, train_rooms=6
 
 
 def test_floorplan__connected_walled_and_held_out():
-    train = source_bank(FLOOR, "train")
-    test = source_bank(FLOOR, "test", train=train)
+    rooms = room_source(FLOOR)
+    train, test = rooms.bank("train"), rooms.bank("test")
     assert train.shape == (64, 24, 24) and test.shape == (32, 24, 24)
     keys = {r.tobytes() for r in train}
     assert not any(r.tobytes() in keys for r in test)  # held out by layout
@@ -50,8 +50,8 @@ def test_floorplan__connected_walled_and_held_out():
         free = int((~walls).sum())
         assert len(bfs_component(walls)) == free  # every free cell reachable
     # the same config gives the same plans (seeded by room_seed, split and index)
-    assert np.array_equal(train, source_bank(FLOOR, "train"))
-    other = source_bank(FLOOR.model_copy(update={"room_seed": 1}), "train")
+    assert np.array_equal(train, room_source(FLOOR).bank("train"))
+    other = room_source(FLOOR.model_copy(update={"room_seed": 1})).bank("train")
     assert not np.array_equal(train, other)
 
 
@@ -107,7 +107,7 @@ def test_floorplan__the_oracle_solves_every_plan():
 
 
 def test_floorplan__numpy_twin_matches_the_jax_env():
-    from tests.core.test_parity import assert_parity_on
+    from tests.core.env.test_parity import assert_parity_on
 
     assert_parity_on(FLOOR.model_copy(update={"train_rooms": 16, "test_rooms": 8}))
 
@@ -188,7 +188,7 @@ def test_map__as_rooms_of_an_env_unreachable_space_is_walled(tmp_path):
     path = write_map(tmp_path, drawn[:, :10], 0.5)
     env = EnvConfig(rooms="maps", maps={"train": [str(path)]}, grid_size=16, room_size=8.0,
                     train_rooms=4, test_rooms=2)  # fmt: skip
-    bank = source_bank(env, "train")
+    bank = room_source(env).bank("train")
     assert bank.shape == (4, 16, 16) and all(np.array_equal(bank[0], b) for b in bank)
     free = ~bank[0]
     assert free[1:13, 1:7].all() and not free[:, 8:].any()  # only the larger side is kept
@@ -218,15 +218,15 @@ def test_map__bad_files_are_refused_naming_the_file_and_the_fix(tmp_path):
     env = EnvConfig(rooms="maps", maps={"train": [str(good)], "resolution": 0.1}, grid_size=16,
                     room_size=8.0)  # fmt: skip
     with pytest.raises(MapError, match=r"env\.maps\.resolution apply to plain"):
-        source_bank(env, "train")
+        room_source(env).bank("train")
     walled = write_map(tmp_path, np.ones((8, 8), dtype=bool), 0.5)
     env = EnvConfig(rooms="maps", maps={"train": [str(walled)]}, grid_size=16, room_size=8.0)
     with pytest.raises(MapError, match="no free cell"):
-        source_bank(env, "train")
+        room_source(env).bank("train")
 
 
 def test_map__numpy_twin_matches_the_jax_env(tmp_path):
-    from tests.core.test_parity import assert_parity_on
+    from tests.core.env.test_parity import assert_parity_on
 
     rng = np.random.default_rng(1)
     drawn = rng.random((14, 14)) < 0.12
@@ -240,7 +240,7 @@ def test_map__the_shipped_office_map_loads_and_the_oracle_drives_it():
     from quicknav_core.env.room_sources import check_rooms
     from quicknav_core.eval.evaluate import run_eval
 
-    office = str(Path(__file__).resolve().parents[2] / "examples" / "maps" / "office.yaml")
+    office = str(Path(__file__).resolve().parents[3] / "examples" / "maps" / "office.yaml")
     env = EnvConfig(rooms="maps", maps={"train": [office]}, grid_size=48, room_size=24.0,
                     max_steps=600, train_rooms=4, test_rooms=4)  # fmt: skip
     check_rooms(env)

@@ -14,7 +14,7 @@ from quicknav_core.eval.evaluate import Episodes, evaluate, spl, summarize, wils
 from quicknav_core.eval.planning import INF, goal_field, greedy_path, node_positions
 from quicknav_core.eval.scripted import OracleAgent, RandomAgent
 from quicknav_core.train import train_run
-from tests.core.reference import disc_wall_clearance, grid_dijkstra
+from tests.core.env.reference import disc_wall_clearance, grid_dijkstra
 
 
 def _episodes(success, steps, path, ref, returns=None, collisions=None, truncated=None):

@@ -7,8 +7,8 @@ from quicknav_core.config import EnvConfig
 from quicknav_core.env.constants import HIT_GOAL, HIT_NONE, HIT_WALL, beam_angles
 from quicknav_core.env.lidar import cast_lidar
 from quicknav_core.env.numpy_env import cast_lidar_np
-from quicknav_core.env.rooms import make_room_bank
-from tests.core.reference import brute_force_lidar, disc_wall_clearance
+from quicknav_core.env.room_sources import make_room_bank
+from tests.core.env.reference import brute_force_lidar, disc_wall_clearance
 
 cast_batch = jax.jit(
     jax.vmap(cast_lidar, in_axes=(0, 0, 0, 0, None, None, None, None, None, None)),

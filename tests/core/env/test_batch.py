@@ -123,19 +123,21 @@ def test_env_and_params__concurrent_starts_of_one_config_build_it_once(monkeypat
 
     from quicknav_core.config import EnvConfig
     from quicknav_core.env import batch
+    from quicknav_core.runtime import Runtime
 
     cfg = EnvConfig(grid_size=8, lidar_beams=4, train_rooms=8, test_rooms=4, room_seed=424242)
     calls = []
     real_build = EnvConfig.build
 
-    def slow_build(self, split="train"):
+    def slow_build(self, split="train", runtime=None):
         calls.append(split)
         time.sleep(0.3)  # a build long enough for the other thread to arrive meanwhile
-        return real_build(self, split)
+        return real_build(self, split, runtime)
 
     monkeypatch.setattr(EnvConfig, "build", slow_build)
     out = []
-    threads = [threading.Thread(target=lambda: out.append(batch.env_and_params(cfg, "train")))
+    runtime = Runtime()  # the server's one runtime
+    threads = [threading.Thread(target=lambda: out.append(batch.env_and_params(cfg, "train", runtime)))
                for _ in range(3)]  # fmt: skip
     for t in threads:
         t.start()

@@ -188,19 +188,25 @@ def test_resolve__unknown_keys_say_what_was_meant():
 
 # --------------------------------------------------------------------------- traced numbers
 def test_traced_fields__are_exactly_what_batched_training_varies():
-    from quicknav_core.env.reward import reward_numbers
+    from quicknav_core.config import EnvConfig
+    from quicknav_core.env.quicknav import traced_numbers
     from quicknav_core.env.types import EnvParams
     from quicknav_core.train.recurrent_ppo import PPOHyper
 
     hyper = {f.name for f in dataclasses.fields(PPOHyper)}
     assert hyper == traced_fields(PPOConfig), "PPOHyper must hold every traced PPO number"
-    numbers = reward_numbers(RewardConfig())
-    assert set(numbers) <= {f.name for f in dataclasses.fields(EnvParams)}
-    renamed = {"progress": "progress_mode"}
-    assert {renamed.get(f, f) for f in traced_fields(RewardConfig)} == set(numbers)
+    numbers = traced_numbers(EnvConfig())
+    bank = {"rooms", "room_col_bits", "room_row_bits", "free_cells", "num_free"}
+    pool = {f.name for f in dataclasses.fields(EnvParams) if f.name.startswith("pool_")}
+    # every number of EnvParams comes from a field marked traced (none from a hand-kept list)
+    assert set(numbers) == {f.name for f in dataclasses.fields(EnvParams)} - bank - pool
     # every traced number really changes the params: no field is silently dropped
-    changed = reward_numbers(RewardConfig(step_penalty=0.3, collision_penalty=1, cycle_penalty=2,
-                                          progress_reward=0.5, goal_reward=5, cycle_cap=3,
-                                          exploration_reward=1, progress="linear",
-                                          potential_gamma=0.9))  # fmt: skip
-    assert all(changed[k] != numbers[k] for k in numbers)
+    changed = traced_numbers(EnvConfig(
+        room_size=9.0, robot_radius=0.2, max_wheel_speed=0.9, wheel_base=0.4, dt=0.11,
+        lidar_max_range=5.0, goal_radius=0.25, max_steps=200,
+        reward=RewardConfig(step_penalty=0.3, collision_penalty=1, cycle_penalty=2,
+                            progress_reward=0.5, goal_reward=5, cycle_cap=3, exploration_reward=1,
+                            progress="linear", potential_gamma=0.9),
+        randomize={"beam_dropout": [0.0, 0.1]}))  # fmt: skip
+    assert all(changed[k] != numbers[k] for k in numbers if k != "randomize")
+    assert numbers["randomize"] is None and changed["randomize"] is not None

@@ -111,11 +111,19 @@ def test_gtrxl__whole_sequence_at_once_equals_step_by_step(memory_length):
     assert same_carry is carry0
     for a, b in ((at_once.mean, by_step.mean), (at_once.value, by_step.value), (at_once.log_std, by_step.log_std)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=2e-5, atol=2e-6)
-    # and gradients through it agree (what PPO's loss differentiates)
+
+    # and gradients through it agree (what PPO's loss differentiates); compiled as training
+    # compiles them (run op by op, the two gradients took half a minute on 2 cores)
     def loss(p, run):
         return jnp.sum(run(p).mean ** 2) + jnp.sum(run(p).value)
 
-    g_seq = jax.grad(loss)(params, lambda p: net.apply(p, carry0, obs, start)[1])
-    g_step = jax.grad(loss)(params, lambda p: jax.lax.scan(lambda c, xs: net.apply(p, c, *xs), carry0, (obs, start))[1])
+    def seq(p):
+        return net.apply(p, carry0, obs, start)[1]
+
+    def steps(p):
+        return jax.lax.scan(lambda c, xs: net.apply(p, c, *xs), carry0, (obs, start))[1]
+
+    g_seq = jax.jit(jax.grad(lambda p: loss(p, seq)))(params)
+    g_step = jax.jit(jax.grad(lambda p: loss(p, steps)))(params)
     for a, b in zip(jax.tree.leaves(g_seq), jax.tree.leaves(g_step), strict=True):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-3, atol=1e-5)

@@ -6,8 +6,9 @@ import pytest
 
 from quicknav_core.config import EnvConfig
 from quicknav_core.env.numpy_env import carve_room_np
-from quicknav_core.env.rooms import carve_bank_steps, free_cell_table, make_room_bank
-from tests.core.reference import block_walk_reference, flood_fill_component
+from quicknav_core.env.room_sources import free_cell_table, make_room_bank
+from quicknav_core.env.rooms import carve_bank_steps
+from tests.core.env.reference import block_walk_reference, flood_fill_component
 
 # sha256 of the default banks' bytes (EnvConfig(), grid 16), taken on 2026-11-23 from commit 85691ec,
 # before the carver became a block loop: the ``paper`` carver must keep them bit for bit
@@ -162,14 +163,21 @@ def test_rooms__block_carvers_deterministic_and_seeded(carver):
     assert not (a == c).all()
 
 
-def test_make_room_bank__returns_a_fresh_array_each_call():
+def test_room_bank__built_once_per_runtime_and_no_caller_can_change_it():
+    from quicknav_core.env.room_sources import room_source
+    from quicknav_core.runtime import Runtime
+
     cfg = EnvConfig(grid_size=8, train_rooms=8, test_rooms=4)
-    a = make_room_bank(cfg, "train")
-    a[:] = False  # the test bank is built from the train bank kept in memory
-    b = make_room_bank(cfg, "train")
-    assert b[:, 0, :].all()
-    test = make_room_bank(cfg, "test")
+    runtime = Runtime()
+    a = room_source(cfg, runtime).bank("train")
+    with pytest.raises(ValueError, match="read-only"):
+        a[:] = False  # the test bank is built from the train bank the runtime keeps
+    b = room_source(cfg, runtime).bank("train")
+    assert b is a and b[:, 0, :].all() and len(runtime.banks) == 1
+    test = room_source(cfg, runtime).bank("test")
     assert not {r.tobytes() for r in b} & {r.tobytes() for r in test}
+    # another runtime shares nothing, and builds the same rooms
+    assert np.array_equal(make_room_bank(cfg, "train"), a) and make_room_bank(cfg, "train") is not a
 
 
 @pytest.mark.parametrize("to_carved", [False, True])

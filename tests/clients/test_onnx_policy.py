@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import subprocess
 import sys
 import textwrap
@@ -139,24 +140,22 @@ NO_JAX_DRIVER = textwrap.dedent('''
 ''')
 
 
-@pytest.mark.slow  # trains the demo in-process, evaluates and exports it, drives 2 x 100 episodes: ~3 min
-def test_onnx_policy__drives_the_held_out_episodes_without_jax(tmp_path):
+@pytest.mark.slow  # evaluates the test run's trained demo, drives 2 x 100 episodes without JAX: ~1 min
+def test_onnx_policy__drives_the_held_out_episodes_without_jax(tmp_path, trained_demo_run):
     import jax
 
-    from quicknav_core.config import EvalConfig, resolve_train
+    from quicknav_core.config import EvalConfig, TrainConfig
     from quicknav_core.eval.evaluate import run_eval
-    from quicknav_core.export import export_run
-    from quicknav_core.train.run import train_run
+    from quicknav_core.layout import RunFolder
 
-    cfg = resolve_train({"preset": "demo"})
-    run_dir = tmp_path / "run"
-    train_run(cfg, run_dir)
-    eval_cfg = EvalConfig(policy="trained", source=str(run_dir), env=cfg.env, episodes=100, seed=0,
-                          gif_episodes=0, pictures=False)  # fmt: skip
-    result, _ = run_eval(eval_cfg, run_dir / "eval", run_dir=run_dir)
+    run_dir = RunFolder(trained_demo_run)  # trained once per test run, its policy exported
+    cfg = TrainConfig.model_validate_json(run_dir.config.read_text())
+    eval_cfg = EvalConfig(policy="trained", source=str(run_dir.path), env=cfg.env, episodes=100,
+                          seed=0, gif_episodes=0, pictures=False)  # fmt: skip
+    result, _ = run_eval(eval_cfg, None, run_dir=run_dir.path)
     jax_success = result["metrics"]["success_rate"]
     assert jax_success >= 0.9, f"the demo policy did not learn: {jax_success}"
-    export_run(run_dir, tmp_path / "policy")
+    shutil.copytree(run_dir.path, tmp_path / "policy")  # policy.onnx + policy.json, as exported
     # the very episodes `quicknav eval` ran: episode i starts from reset(fold_in(PRNGKey(0), i))
     env, params = cfg.env.build("test")
     keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(0), i))(np.arange(100))

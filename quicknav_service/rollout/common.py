@@ -1,0 +1,86 @@
+"""What the Rollout and Policy servicers share: refusals with exact status codes, the token check,
+the lookup of a trained job's run folder, and admission problems turned into a status."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import grpc
+
+from quicknav_core.runtime import Runtime
+from quicknav_service import auth
+from quicknav_service.settings import Settings
+
+# A status message travels in HTTP/2 trailers (metadata): past a few kB it breaks the call.
+MAX_MESSAGE_CHARS = 2000
+
+
+def bounded(message: str) -> str:
+    """A status message cut to MAX_MESSAGE_CHARS (bad input is never echoed at length)."""
+    if len(message) <= MAX_MESSAGE_CHARS:
+        return message
+    return message[: MAX_MESSAGE_CHARS - 40] + f"... ({len(message):,} characters in all)"
+
+
+class Refused(Exception):
+    """A request the server refuses: ends the stream with ``code`` and ``message``."""
+
+    def __init__(self, code: grpc.StatusCode, message: str):
+        super().__init__(message)
+        self.code = code
+        self.message = message
+
+
+def authorization(context: grpc.aio.ServicerContext) -> str | None:
+    """The call's ``authorization`` metadata as sent (``Bearer <token>``, as REST takes it)."""
+    for key, value in context.invocation_metadata() or ():
+        if key.lower() == "authorization" and isinstance(value, str):
+            return value
+    return None
+
+
+def peer_host(context) -> str:
+    """The client's address without its port (``ipv4:127.0.0.1:5000`` -> ``127.0.0.1``)."""
+    peer = context.peer() or "unknown"
+    kind, _, rest = peer.partition(":")
+    if kind == "ipv6":
+        return rest.rsplit(":", 1)[0].strip("[]")
+    return rest.rsplit(":", 1)[0] if kind == "ipv4" else peer
+
+
+async def authenticate(settings: Settings, limiter: auth.FailureLimiter, context) -> None:
+    """Abort the call unless it carries ``authorization: Bearer <token>`` (when the server has a
+    token); failures count per client address, as for REST."""
+    token = settings.api_token
+    if not token:
+        return
+    client = peer_host(context)
+    wait = limiter.retry_after(client)
+    if wait is not None:
+        await context.abort(
+            grpc.StatusCode.RESOURCE_EXHAUSTED,
+            f"too many failed authentications from this address: retry in {wait} s"
+            " (QUICKNAV_AUTH_FAILURES_MAX per QUICKNAV_AUTH_FAILURE_WINDOW_S)",
+        )
+    if not auth.token_matches(authorization(context), token):
+        limiter.failed(client)
+        await context.abort(
+            grpc.StatusCode.UNAUTHENTICATED,
+            "this server requires the API token: send call metadata"
+            " 'authorization: Bearer <token>' (the QUICKNAV_API_TOKEN of the service)",
+        )
+
+
+def is_plain_id(job_id: str) -> bool:
+    return bool(job_id) and all(c.isalnum() or c in "-_" for c in job_id) and len(job_id) <= 64
+
+
+def run_copy(runtime: Runtime, job_id: str, field: str) -> Path | None:
+    """A train job's run folder from the artifact store (a local copy of an object store's);
+    UNAVAILABLE naming the store when it cannot be reached."""
+    from quicknav_service.artifacts import ArtifactUnavailable
+
+    try:
+        return runtime.artifacts.run_copy(job_id)
+    except ArtifactUnavailable as e:
+        raise Refused(grpc.StatusCode.UNAVAILABLE, f"{field}={job_id!r}: {e}") from None
