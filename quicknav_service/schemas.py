@@ -83,8 +83,9 @@ class JobPublic(BaseModel):
     cancel_requested: bool
     waiting: str | None = Field(
         None,
-        description="for a queued job that no live worker can run: why it waits (e.g. \"waiting"
-        " for a worker with 2 devices; the 1 live worker has 1 device ...\"); null otherwise",
+        description="for a queued job that cannot start: why it waits (\"waiting: the data volume"
+        " is full; jobs start when space is freed\", or \"waiting for a worker with 2 devices; the"
+        " 1 live worker has 1 device ...\"); null otherwise",
     )
     created_at: float
     started_at: float | None

@@ -20,6 +20,7 @@ each kind of job does is a function registered in ``quicknav_service.job_kinds``
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 import logging
 import os
@@ -34,16 +35,18 @@ from typing import Any
 
 from quicknav_core.layout import RUN
 from quicknav_service.artifacts import ArtifactUnavailable, make_artifacts
+from quicknav_service.disk import disk_full
 from quicknav_service.job_context import JobContext, best_effort, sweep_storage, until_done
 from quicknav_service.job_kinds import RUNNERS
 from quicknav_service.jobs.capabilities import ANNOUNCE_TTL_S, Capabilities, can_run
-from quicknav_service.jobs.models import Job, JobKind, JobStatus, StoreUnavailable
+from quicknav_service.jobs.models import Job, JobKind, JobNotFound, JobStatus, StoreUnavailable
 from quicknav_service.runtime import service_runtime
 from quicknav_service.settings import Settings
 
 log = logging.getLogger("quicknav.worker")
 
 MAX_BACKOFF_S = 10.0
+SCRATCH_CHECK_S = 60.0  # an idle worker looks for scratch no attempt owns at most this often
 
 
 def failure_reason(error: BaseException, job_dir: Path) -> str:
@@ -83,6 +86,8 @@ class Worker:
         self._coordinators: list[threading.Thread] = []  # sweeps this worker follows
         self._capabilities: Capabilities | None = None
         self._announced_at = 0.0
+        self._announced_full = False
+        self._scratch_checked = 0.0
         self.artifacts = make_artifacts(settings)  # a folder, or an object store and a scratch folder
         # room banks (carved once per config, kept on the data disk), uploaded maps, warm trainers
         self.runtime = service_runtime(settings, self.artifacts)
@@ -107,19 +112,48 @@ class Worker:
     def can_run(self, job: Job) -> bool:
         return can_run(self.capabilities, job)
 
-    def announce(self, force: bool = False) -> None:
-        """Say what this worker has (renewed as it polls; the API explains waiting jobs by it)."""
+    def announce(self, force: bool = False, disk_full: bool = False) -> None:
+        """Say what this worker has (renewed as it polls, and whenever its disk fills or frees:
+        the API explains waiting jobs by it)."""
         now = time.monotonic()
-        if force or now - self._announced_at >= ANNOUNCE_TTL_S / 3:
-            self.store.announce_worker(self.capabilities.to_dict(), ANNOUNCE_TTL_S)
-            self._announced_at = now
+        changed = disk_full != self._announced_full
+        if force or changed or now - self._announced_at >= ANNOUNCE_TTL_S / 3:
+            caps = dataclasses.replace(self.capabilities, disk_full=disk_full)
+            self.store.announce_worker(caps.to_dict(), ANNOUNCE_TTL_S)
+            self._announced_at, self._announced_full = now, disk_full
 
     def withdraw(self) -> None:
         self.best_effort(self.store.withdraw_worker, self.id)
 
+    def clear_stale_scratch(self) -> list[str]:
+        """Drop the scratch copies on this data folder that no attempt owns any more: jobs that
+        ended or went back to the queue, and attempts whose lease ran out (a worker killed mid-job;
+        whoever resumes it fetches the checkpoint from the store). A job running under a live lease
+        (another worker process on this folder) keeps its copy. Returns the jobs cleared."""
+        cleared = []
+        now = time.time()
+        for job_id in self.artifacts.scratch_jobs():
+            try:
+                job = self.store.get(job_id)
+            except JobNotFound:
+                job = None
+            except StoreUnavailable:
+                return cleared  # the next start, or the next idle moment, tries again
+            held = (job is not None and job.status == JobStatus.running
+                    and (job.lease_until or 0) > now)  # fmt: skip
+            if not held:
+                self.artifacts.release(job_id)
+                cleared.append(job_id)
+        if cleared:
+            log.info("worker %s: cleared the scratch of %d job(s) no attempt owns: %s", self.id,
+                     len(cleared), ", ".join(cleared))  # fmt: skip
+        self._scratch_checked = time.monotonic()
+        return cleared
+
     def run_forever(self, poll_s: float = 0.25) -> None:
         """Claim and run jobs until shut down; nothing a job or the store does ends the loop."""
         _enable_jax_cache(self.settings)
+        self.clear_stale_scratch()
         try:
             self._loop(poll_s)
         finally:
@@ -142,6 +176,8 @@ class Worker:
                 backoff = min(backoff * 2, MAX_BACKOFF_S)
                 continue
             if not ran:
+                if time.monotonic() - self._scratch_checked >= SCRATCH_CHECK_S:
+                    self.clear_stale_scratch()  # an attempt that died since, its lease now out
                 self.shutdown.wait(poll_s)
         self.join_coordinators()
 
@@ -153,6 +189,7 @@ class Worker:
         back to the queue, so it is waited for rather than forgotten.
         """
         _enable_jax_cache(self.settings)
+        self.clear_stale_scratch()
         ran = 0
         while not self.shutdown.is_set():
             try:
@@ -177,7 +214,12 @@ class Worker:
         """Claim and run one job; False if the queue was empty (burst mode for tests)."""
         if self.shutdown.is_set():
             return False
-        self.announce()
+        # a full data disk: claim nothing (the job would fail writing its first checkpoint); the
+        # jobs wait in the queue, and say why, until space is freed
+        full = disk_full(self.settings.data_dir)
+        self.announce(disk_full=full)
+        if full:
+            return False
         job = self.store.claim(self.id, self.settings.lease_s, can_run=self.can_run)
         if job is None:
             return False

@@ -257,6 +257,8 @@ def train_run(
                 break
     from quicknav_core.train.pictures import draw_learning_curve_safely
 
+    if resume and not stopped:  # an earlier attempt's curve, whatever it left, made whole
+        TensorBoardLog.rebuild(run_dir)
     warnings = draw_learning_curve_safely(run_dir)  # a picture never costs a run its numbers
     return {
         "run_dir": str(run_dir), "chunks_done": chunk, "chunks": max(chunks, chunk),
@@ -268,21 +270,38 @@ def train_run(
 class TensorBoardLog:
     """TensorBoard event files in the run folder (tensorboardX), one scalar per chunk metric
     against env steps, flushed every chunk: `tensorboard --logdir <runs or data/artifacts>` shows
-    every run, live."""
+    every run, live.
+
+    A run resumed after its worker died writes a new events file beside whatever the earlier
+    attempt left (perhaps nothing: a worker elsewhere); when the run ends, ``rebuild`` replaces
+    them with one file written from metrics.jsonl, so the curve a user opens has every chunk
+    exactly once, whatever attempts made them."""
 
     def __init__(self, run_dir: Path):
         from tensorboardX import SummaryWriter
 
         self.writer = SummaryWriter(logdir=str(run_dir), flush_secs=3600)
 
-    def add(self, record: dict[str, Any]) -> None:
+    @staticmethod
+    def rebuild(run_dir: Path) -> None:
+        """One events file with every chunk of metrics.jsonl, in place of the attempts' files."""
+        run = RunFolder(run_dir)
+        old = sorted(run.path.glob(f"{RUN.tensorboard_prefix}*"))  # before the new file exists
+        with TensorBoardLog(run.path) as board:
+            for record in run.read_metrics():
+                board.add(record, flush=False)
+        for path in old:
+            path.unlink(missing_ok=True)
+
+    def add(self, record: dict[str, Any], flush: bool = True) -> None:
         step = int(record["env_steps"])
         for name, value in record.items():
             if name in ("chunk", "env_steps", "chunks", "total_steps"):
                 continue
             if isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value):
                 self.writer.add_scalar(f"train/{name}", float(value), step)
-        self.writer.flush()
+        if flush:
+            self.writer.flush()
 
     def __enter__(self) -> TensorBoardLog:
         return self

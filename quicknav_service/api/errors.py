@@ -3,6 +3,7 @@ map the jobs service's and the store's errors to status codes (the one place tha
 
 from __future__ import annotations
 
+import logging
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -15,6 +16,8 @@ from quicknav_service.artifacts import ArtifactUnavailable
 from quicknav_service.jobs.models import StoreUnavailable
 from quicknav_service.jobs.service import BadRequest, Conflict, Invalid, NotFound, ServiceError
 from quicknav_service.schemas import MIN_ID_PREFIX, HTTPError, ValidationErrorBody
+
+log = logging.getLogger("quicknav.api")
 
 _WHY = {
     400: "the request cannot be understood (the message says which part)",
@@ -101,6 +104,8 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(ArtifactUnavailable)
     async def artifacts_unavailable(request: Request, exc: ArtifactUnavailable) -> JSONResponse:
+        # the client library's words (they name the store's endpoint) go to the log only
+        log.warning("artifact store %s unavailable while %s: %s", exc.store, exc.doing, exc.error)
         return JSONResponse(
             {"detail": f"{exc}; retry in a few seconds"}, status_code=503,
             headers={"Retry-After": "5"},

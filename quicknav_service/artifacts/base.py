@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from abc import ABC, abstractmethod
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -14,14 +15,41 @@ PARTIAL_DIRS = (RUN.checkpoint + CHECKPOINT.new_suffix, RUN.checkpoint + CHECKPO
 
 
 class ArtifactUnavailable(Exception):
-    """The artifact store could not be reached (or refused the credentials): names the store and
-    what was being done, never the credentials."""
+    """The artifact store could not be reached (or refused the credentials). Its message names the
+    store as the operator configured it (``s3://bucket/prefix``), what was being done and the kind
+    of failure; never the credentials, and never the client library's own words (they name the
+    store's internal endpoint): those are in ``error``, for the log."""
 
     def __init__(self, store: str, doing: str, error: object):
         self.store = store
         self.doing = doing
         self.error = str(error).splitlines()[0][:300] if str(error) else type(error).__name__
-        super().__init__(f"artifact store {store} unavailable while {doing}: {self.error}")
+        self.cause = failure_kind(self.error)
+        super().__init__(f"artifact store {store} unavailable while {doing}: {self.cause}")
+
+
+# the kinds of failure a client may be told, by words of the client library's message
+_KINDS = (("refused", "connection refused"), ("timed out", "timed out"),
+          ("dns", "the store's host name does not resolve"),
+          ("resolve", "the store's host name does not resolve"),
+          ("403", "access denied (check the credentials)"),
+          ("denied", "access denied (check the credentials)"),
+          ("nosuchbucket", "no such bucket"), ("reset", "connection reset"))  # fmt: skip
+# what names a place: a URL, or a host and port
+_PLACE = re.compile(r"://|\b\d{1,3}(\.\d{1,3}){3}\b|\[[0-9a-f:]+\]|:\d{2,5}\b", re.I)
+
+
+def failure_kind(error: str) -> str:
+    """What kind of failure a client library's message describes, in words that name no place:
+    the message itself when it names none (QuickNav's own, "the stored object is not ... bytes"),
+    else its kind ("connection refused", "timed out", ...)."""
+    if not _PLACE.search(error):
+        return error
+    text = error.lower()
+    for needle, kind in _KINDS:
+        if needle in text:
+            return kind
+    return "the store did not answer"
 
 
 @dataclass(frozen=True)
@@ -77,6 +105,10 @@ class ArtifactStore(ABC):
     @abstractmethod
     def release(self, job_id: str) -> None:
         """The job no longer runs here: drop a scratch copy (the store keeps the files)."""
+
+    def scratch_jobs(self) -> list[str]:
+        """The jobs with a scratch copy on this machine (none where the folder is the store)."""
+        return []
 
     @abstractmethod
     def run_copy(self, job_id: str) -> Path | None:

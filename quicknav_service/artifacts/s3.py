@@ -264,6 +264,11 @@ class S3Artifacts(ArtifactStore):
     def release(self, job_id: str) -> None:
         shutil.rmtree(self.work_dir(job_id), ignore_errors=True)
 
+    def scratch_jobs(self) -> list[str]:
+        if not self.scratch.is_dir():
+            return []
+        return sorted(p.name for p in self.scratch.iterdir() if p.is_dir())
+
     def run_copy(self, job_id: str) -> Path | None:
         """config.json, the checkpoint and policy.json in ``<data>/cache/runs/<job>/<version>/``,
         one folder per published checkpoint (complete before it is used; reused while current)."""

@@ -40,13 +40,15 @@ class Capabilities:
     devices: int
     device_kind: str
     memory_mb: int
+    disk_full: bool = False  # its data folder takes no writes: it claims nothing until it does
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> Capabilities:
-        return cls(**{k: data[k] for k in cls.__dataclass_fields__})
+        # an announcement from before ``disk_full`` was announced lacks it: not full
+        return cls(**{k: data[k] for k in cls.__dataclass_fields__ if k in data or k != "disk_full"})
 
 
 _NEEDS: OrderedDict[str, Needs] = OrderedDict()  # by job id: a job's config never changes
@@ -110,9 +112,15 @@ def can_run(caps: Capabilities, job: Job) -> bool:
     return unmet(job_needs(job), caps) is None
 
 
-def waiting_reason(needs: Needs, live: list[Capabilities]) -> str | None:
-    """Why a queued job waits, when no live worker can run it (None when one can, or when no
-    worker has announced itself: then it waits for any worker, as every queued job does)."""
+DISK_FULL = "waiting: the data volume is full; jobs start when space is freed"
+
+
+def waiting_reason(needs: Needs, live: list[Capabilities], disk_full: bool = False) -> str | None:
+    """Why a queued job waits: the data volume is full (``disk_full``: this server's data folder;
+    or every live worker says its own is), or no live worker can run it. None when a worker can,
+    or when no worker has announced itself: then it waits for any worker, as every queued job does."""
+    if disk_full or (live and all(c.disk_full for c in live)):
+        return DISK_FULL
     if not live or any(unmet(needs, c) is None for c in live):
         return None
     wanted = unmet(needs, live[0])

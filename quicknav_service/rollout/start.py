@@ -121,7 +121,7 @@ def start_loc(path: str) -> list:
 def describe(item: dict[str, Any]) -> str:
     """An admission problem as a line naming its place in the Start."""
     *parent, last = [str(p) for p in item["loc"]]
-    if item["msg"].startswith(f"{last}="):  # "grid_size=40 exceeds ...": the field names itself
+    if item["msg"].startswith((f"{last}=", f"{last}:")):  # "grid_size=40 exceeds ...": it names itself
         return ".".join(parent) + "." + item["msg"]
     return ".".join(parent) + (f"[{last}]" if last.isdigit() else f".{last}") + ": " + item["msg"]
 

@@ -187,11 +187,11 @@ def test_metrics__needs_a_token_when_the_server_has_one(tmp_path):
 
 
 def test_readyz__writes_its_disk_probe_at_most_every_few_seconds(tmp_path, monkeypatch):
-    from quicknav_service.api.routes import ops
+    from quicknav_service import disk
 
     probes = []
-    real = ops._probe_disk
-    monkeypatch.setattr(ops, "_probe_disk", lambda d: probes.append(d) or real(d))
+    real = disk._probe_disk
+    monkeypatch.setattr(disk, "_probe_disk", lambda d: probes.append(d) or real(d))
     store = SQLiteJobStore(tmp_path / "jobs.db")
     with TestClient(create_app(Settings(data_dir=tmp_path, embedded_worker=False), store,
                                start_workers=False)) as client:  # fmt: skip
@@ -201,19 +201,19 @@ def test_readyz__writes_its_disk_probe_at_most_every_few_seconds(tmp_path, monke
 
 
 def test_readyz__a_full_disk_is_probed_again_so_its_recovery_shows_at_once(tmp_path, monkeypatch):
-    from quicknav_service.api.routes import ops
+    from quicknav_service import disk
 
     answers = iter(["full", "full", "ok", "ok"])
     probes = []
-    monkeypatch.setattr(ops, "_probe_disk", lambda d: probes.append(d) or next(answers))
+    monkeypatch.setattr(disk, "_probe_disk", lambda d: probes.append(d) or next(answers))
     store = SQLiteJobStore(tmp_path / "jobs.db")
     with TestClient(create_app(Settings(data_dir=tmp_path, embedded_worker=False), store,
                                start_workers=False)) as client:  # fmt: skip
         codes = [client.get("/readyz").status_code for _ in range(5)]
     assert codes == [503, 503, 200, 200, 200] and len(probes) == 3  # the good answer is reused
     # a cached "ok" is not trusted once the file system reports almost no free space
-    monkeypatch.setattr(ops, "_free_bytes", lambda d: 0)
-    assert ops.disk_check(tmp_path) == "ok" and len(probes) == 4
+    monkeypatch.setattr(disk, "_free_bytes", lambda d: 0)
+    assert disk.disk_check(tmp_path) == "ok" and len(probes) == 4
 
 
 def test_idempotency__a_client_key_cannot_name_the_services_own(tmp_path):

@@ -237,6 +237,37 @@ def test_worker_process_killed__its_job_fails_with_the_signal_the_api_lives(tmp_
 
 
 # --------------------------------------------------------------------------- disk full
+def test_disk_full__queued_jobs_say_why_they_wait_and_start_when_space_is_freed(tmp_path):
+    """A data volume with room for job records but not for a job's files: the worker claims
+    nothing, and the job (API, CLI) says why it waits; freed space starts it."""
+    from typer.testing import CliRunner
+
+    from quicknav_cli.main import app
+    from quicknav_service.jobs.capabilities import DISK_FULL
+
+    disk = SmallDisk(tmp_path / "small", mb=8)
+    with disk, LiveServer(tmp_path, data_dir=disk.path / "data") as live:
+        worker, _ = live.run_worker_in_background()
+        disk.fill(leave_bytes=40_000)  # less than the 64 KB the disk probe writes
+        r = httpx.post(f"{live.url}/jobs/eval", json={"policy": "random", "episodes": 3,
+                                                      "env": {"grid_size": 8, "max_steps": 20}})  # fmt: skip
+        assert r.status_code == 202, r.text
+        job_id = r.json()["id"]
+        time.sleep(3 * 0.05 + 1.0)  # many polls of the worker
+        job = job_of(live, job_id)
+        assert job["status"] == "queued" and job["waiting"] == DISK_FULL, job
+        listed = httpx.get(f"{live.url}/jobs").json()["data"]
+        assert [j["waiting"] for j in listed if j["id"] == job_id] == [DISK_FULL]
+        shown = CliRunner().invoke(app, ["jobs", "list"], env={"QUICKNAV_URL": live.url})
+        assert "data volume is full" in shown.output, shown.output
+        disk.empty()
+        done = wait_for(lambda: (j := job_of(live, job_id))["status"] in (
+            "failed", "succeeded") and j, 120, "the job to run once space is back")  # fmt: skip
+        assert done["status"] == "succeeded", done["error"]
+        assert done["waiting"] is None
+        worker.shutdown.set()
+
+
 @pytest.mark.slow  # trains twice on a filled tmpfs: ~60 s on 2 cores
 def test_disk_full__job_fails_with_reason_worker_lives_delete_frees_space(tmp_path):
     disk = SmallDisk(tmp_path / "small", mb=8)

@@ -178,6 +178,9 @@ def test_an_outage_mid_job_is_waited_out_and_downloads_answer_503(fleet):
     assert done.status == JobStatus.succeeded, done.error
     status, detail, retry = seen["list"]
     assert status == 503 and fleet.bucket.url in detail and retry
+    # the store as the operator named it (s3://...), never its endpoint (the client library's words)
+    endpoint = fleet.s3.endpoint
+    assert "http://" not in detail and endpoint not in detail and "127.0.0.1" not in detail, detail
     assert seen["ready"][0] == 503 and seen["ready"][1]["artifacts"].startswith("unreachable")
     assert fleet.bucket.url not in json.dumps(seen["ready"])  # readiness never says where
     assert fleet.bucket.pointer(job["id"])["chunk"] == 3  # the last checkpoint made it
@@ -251,6 +254,17 @@ def test_two_machines_resume_from_the_bucket(tmp_path, s3_env):
         # B never saw A's folder: what it resumed from came from the bucket
         assert not (tmp_path / "machine-b" / "work" / job.id).exists()
         assert checkpoint_dir(bucket.run_copy(job.id)) is not None
+        # the TensorBoard curve in the bucket has every chunk once, A's included
+        events = [a for a in bucket.list(job.id) if a.name.startswith("events.out.tfevents")]
+        assert len(events) == 1, events
+        steps = scalar_steps(bucket.read_bytes(job.id, events[0].name), "train/mean_return")
+        assert steps == [r["env_steps"] for r in rows], (steps, [r["env_steps"] for r in rows])
+        # A's scratch copy outlived it; a worker started again on A's data folder clears it
+        scratch = tmp_path / "machine-a" / "work" / job.id
+        assert scratch.exists()
+        again = worker("machine-a")
+        procs.append(again)
+        wait(lambda: not scratch.exists(), "the new worker on A's folder to clear the dead attempt's scratch", 60)
     finally:
         for p in procs:
             if p.poll() is None:
@@ -260,6 +274,21 @@ def test_two_machines_resume_from_the_bucket(tmp_path, s3_env):
                 except subprocess.TimeoutExpired:
                     p.kill()
         client.flushdb()
+
+
+def scalar_steps(data: bytes, tag: str) -> list[int]:
+    """The steps of ``tag``'s scalars in a TensorBoard events file (TFRecords of Event protos)."""
+    import struct
+
+    from tensorboardX.proto.event_pb2 import Event
+
+    steps, at = [], 0
+    while at < len(data):
+        (length,) = struct.unpack("<Q", data[at:at + 8])
+        event = Event.FromString(data[at + 12:at + 12 + length])  # length, its crc, data, crc
+        at += 12 + length + 4
+        steps += [event.step for v in event.summary.value if v.tag == tag]
+    return steps
 
 
 def test_a_policy_in_the_bucket_is_served_over_grpc(tmp_path, s3_env):

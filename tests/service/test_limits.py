@@ -69,3 +69,43 @@ def test_limits__floor_plans_run_through_the_service_and_map_files_on_the_client
     with pytest.raises(Refused, match="is a file on your disk"):
         start_admitted(pb.Start(config_json=json.dumps(
             {"rooms": "maps", "maps": {"train": ["x.yaml"]}})), settings)  # fmt: skip
+
+
+def test_one_door__rest_cli_and_a_rollout_start_refuse_a_robot_that_fits_in_no_room(service):
+    """The same admission at every door: a robot wider than every passage (here 1.8 m across on
+    0.5 m cells) is refused naming robot_radius, before anything trains or steps."""
+    from typer.testing import CliRunner
+
+    from quicknav_cli.main import app
+
+    settings, jobs = service
+    wide = {"env.grid_size": 8, "env.train_rooms": 16, "env.test_rooms": 8, "env.robot_radius": 0.9}
+    with pytest.raises(Invalid) as rest:
+        jobs.submit_train(TrainJobCreate(preset="demo", overrides=wide))
+    [item] = rest.value.items
+    assert item["loc"] == ["overrides", "env.robot_radius"] and "fits in fewer than two cells" in item["msg"]
+    cli = CliRunner().invoke(app, ["train", "--preset", "demo", *[f"--set={k}={v}" for k, v in wide.items()]])
+    assert cli.exit_code != 0 and item["msg"] in " ".join(cli.output.split()), cli.output
+    start = {k.removeprefix("env."): v for k, v in wide.items()}
+    with pytest.raises(Refused, match="fits in fewer than two cells") as refused:
+        start_admitted(pb.Start(config_json=json.dumps(start), num_envs=4), settings)
+    assert refused.value.code.name == "INVALID_ARGUMENT"
+
+
+def test_one_door__a_start_with_a_million_rooms_is_refused_by_its_memory_before_building(service):
+    """REST refused this (the job's estimate exceeds the budget); a gRPC Start now does too, at
+    once, instead of carving rooms past the client's deadline."""
+    import time
+
+    settings, jobs = service
+    rooms = {"train_rooms": 1_000_000, "grid_size": 32, "room_size": 16}
+    with pytest.raises(Invalid) as rest:
+        jobs.submit_train(TrainJobCreate(preset="demo", overrides={f"env.{k}": v for k, v in rooms.items()}))
+    assert "needs about" in rest.value.items[0]["msg"]
+    t0 = time.perf_counter()
+    with pytest.raises(Refused) as start:
+        start_admitted(pb.Start(config_json=json.dumps(rooms), num_envs=4), settings)
+    assert time.perf_counter() - t0 < 5  # judged by its estimate: nothing was carved
+    assert start.value.code.name == "RESOURCE_EXHAUSTED", start.value.message
+    message = start.value.message
+    assert message.startswith("start.config.train_rooms: the job needs about") and "MAX_JOB_MEMORY_MB" in message

@@ -3,12 +3,14 @@ resolves a body into a config, checks this server's limits and talks to the stor
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Header, Query, Response
 
-from quicknav_service.api.deps import JobId, JobsDep, StoreDep, require_token
+from quicknav_service.api.deps import JobId, JobsDep, SettingsDep, StoreDep, require_token
 from quicknav_service.api.errors import AUTH, CHANGE, STORE, responses
+from quicknav_service.disk import disk_full
 from quicknav_service.jobs.capabilities import Capabilities, job_needs, waiting_reason
 from quicknav_service.jobs.models import Job, JobKind, JobStatus
 from quicknav_service.schemas import (
@@ -33,14 +35,27 @@ SUBMITTED = {"description": "queued", "headers": {"Location": {
     "description": "the job's URL", "required": True, "schema": {"type": "string"}}}}  # fmt: skip
 
 
-def public(job: Job, live: list[Capabilities] | None = None) -> JobPublic:
-    """A stored job as the API shows it; with the ``live`` workers, a queued job that none of
-    them can run says why it waits."""
+@dataclass(frozen=True)
+class Waits:
+    """What a queued job may wait for, read once per request: the live workers, and whether
+    this server's data folder is full."""
+
+    live: list[Capabilities]
+    disk_full: bool = False
+
+    @classmethod
+    def now(cls, store, settings) -> Waits:
+        return cls(live_workers(store), disk_full(settings.data_dir))
+
+
+def public(job: Job, waits: Waits | None = None) -> JobPublic:
+    """A stored job as the API shows it; given what queued jobs ``waits`` for, a queued job that
+    cannot start says why (the data volume is full, or no live worker can run it)."""
     base = f"/jobs/{job.id}"
     warnings = (job.result or {}).get("warnings") or []
     waiting = None
-    if live and job.status == JobStatus.queued:
-        waiting = waiting_reason(job_needs(job), live)
+    if waits is not None and job.status == JobStatus.queued:
+        waiting = waiting_reason(job_needs(job), waits.live, waits.disk_full)
     return JobPublic(
         id=job.id, kind=job.kind, status=job.status, progress=job.progress, metrics=job.metrics,
         attempts=job.attempts, worker=job.worker, error=job.error, result=job.result,
@@ -102,21 +117,23 @@ def submit_eval_job(body: EvalJobCreate, jobs: JobsDep, response: Response,
 
 
 @router.get("", response_model=JobsPublic)
-def list_jobs(store: StoreDep, status: JobStatus | None = None, kind: JobKind | None = None,
+def list_jobs(store: StoreDep, settings: SettingsDep, status: JobStatus | None = None,
+                    kind: JobKind | None = None,
                     limit: Annotated[int, Query(ge=1, le=500)] = 50,
                     offset: Annotated[int, Query(ge=0, le=MAX_LIST_OFFSET)] = 0) -> JobsPublic:  # fmt: skip
     """Jobs, newest first; ``count`` is the number matching the filter."""
     data, count = store.list(status=status, kind=kind, limit=limit, offset=offset)
-    live = live_workers(store) if any(j.status == JobStatus.queued for j in data) else None
-    return rendered(JobsPublic(data=[public(j, live) for j in data], count=count))
+    waits = Waits.now(store, settings) if any(j.status == JobStatus.queued for j in data) else None
+    return rendered(JobsPublic(data=[public(j, waits) for j in data], count=count))
 
 
 @router.get("/{job_id}", response_model=JobPublic, responses=responses(404, 409))
-def read_job(job_id: JobId, jobs: JobsDep, store: StoreDep) -> JobPublic:
-    """One job, by its id or a unique prefix of it; a queued job that no live worker can run
-    says why in ``waiting``."""
+def read_job(job_id: JobId, jobs: JobsDep, store: StoreDep, settings: SettingsDep) -> JobPublic:
+    """One job, by its id or a unique prefix of it; a queued job that cannot start says why in
+    ``waiting`` (the data volume is full, or no live worker can run it)."""
     job = jobs.get(job_id)
-    return rendered(public(job, live_workers(store) if job.status == JobStatus.queued else None))
+    queued = job.status == JobStatus.queued
+    return rendered(public(job, Waits.now(store, settings) if queued else None))
 
 
 @router.post("/{job_id}/cancel", response_model=JobPublic,

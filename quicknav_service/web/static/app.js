@@ -108,7 +108,12 @@ function jobProgress(job) {
     return h("span", { class: "reason", title: job.error || "" }, reason(job.error) || "failed (no reason given)");
   }
   if (job.status === "cancelled") return h("span", { class: "muted" }, `stopped at ${Math.round(100 * job.progress)} %`);
-  if (job.waiting) return h("span", { class: "reason waiting", title: job.waiting }, "waiting for a worker that can run it");
+  if (job.waiting) {
+    // the reason in a few words (the whole of it in the title and on the job's page)
+    const short = job.waiting.includes("data volume is full") ? "waiting: the data volume is full"
+      : "waiting for a worker that can run it";
+    return h("span", { class: "reason waiting", title: job.waiting }, short);
+  }
   return progressBar(job.progress);
 }
 
