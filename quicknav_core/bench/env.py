@@ -364,7 +364,6 @@ def check_targets(results: Sequence[Measurement], cfg: BenchConfig) -> list[dict
 
 def run_bench(cfg: BenchConfig, progress: Callable[[str], None] | None = None) -> BenchReport:
     """Run every measurement of ``cfg``; the two Python-driven loops share half the time budget."""
-    import jax
 
     say = progress or (lambda _msg: None)
     report = BenchReport(config=asdict(cfg), machine=machine_info())
@@ -381,7 +380,6 @@ def run_bench(cfg: BenchConfig, progress: Callable[[str], None] | None = None) -
         for batch in cfg.batches:
             say(f"grid {grid}: JAX, {batch} envs, vmap + lax.scan")
             report.results.append(bench_jax_scan(grid, batch, cfg))
-            jax.clear_caches()
     report.targets = check_targets(report.results, cfg)
     return report
 
