@@ -71,26 +71,6 @@ _BUILDING_ENV = {
 }  # fmt: skip
 
 PRESETS: dict[str, dict[str, Any]] = {
-    "building": {
-        "description": "Drive a building: a learned local planner (PPO, 2x128 MLP) that follows the"
-        " map's global plan (waypoints in the robot's frame) and avoids, by its lidar, what the map"
-        " does not show (boxes, people). Trained on generated floor plans only: its figures on"
-        " real maps are those of a building it never saw. Start here for your own building.",
-        "notes": "Everything is QuickNav's (not in the paper): the plan in the observation, the"
-        " path-progress reward, the obstacles and the training budget.",
-        "config": {
-            "env": _BUILDING_ENV,
-            "algorithm": {
-                "name": "ppo", "implementation": "quicknav", "learning_rate": 3e-4,
-                "num_steps": 64, "num_minibatches": 8, "num_epochs": 4, "gamma": 0.98,
-                "ent_coef": 0.005,
-            },
-            "network": {"kind": "mlp", "hidden_sizes": [128, 128]},
-            "num_envs": 256,
-            "total_steps": 8_388_608,
-            "chunk_steps": 262_144,
-        },
-    },
     "demo": {
         "description": "Fast demo: PPO, 2x64 MLP, default 16x16 rooms with the goal observed; "
         "goes from ~0 to >90% success in about a minute on 2 CPU cores.",
@@ -111,6 +91,26 @@ PRESETS: dict[str, dict[str, Any]] = {
             # (a demo job no longer carries a "not a whole number of updates" note)
             "total_steps": 1_503_232,
             "chunk_steps": 32_768,
+        },
+    },
+    "building": {
+        "description": "Drive a building: a learned local planner (PPO, 2x128 MLP) that follows the"
+        " map's global plan (waypoints in the robot's frame) and avoids, by its lidar, what the map"
+        " does not show (boxes, people). Trained on generated floor plans only: its figures on"
+        " real maps are those of a building it never saw. Start here for your own building.",
+        "notes": "Everything is QuickNav's (not in the paper): the plan in the observation, the"
+        " path-progress reward, the obstacles and the training budget.",
+        "config": {
+            "env": _BUILDING_ENV,
+            "algorithm": {
+                "name": "ppo", "implementation": "quicknav", "learning_rate": 3e-4,
+                "num_steps": 64, "num_minibatches": 8, "num_epochs": 4, "gamma": 0.98,
+                "ent_coef": 0.005,
+            },
+            "network": {"kind": "mlp", "hidden_sizes": [128, 128]},
+            "num_envs": 256,
+            "total_steps": 8_388_608,
+            "chunk_steps": 262_144,
         },
     },
     "paper-ppo": {

@@ -129,6 +129,8 @@ class EnvParams:
     exploration_reward: jax.Array | float = 0.0
     progress_mode: jax.Array | int = 0  # 0: sign(d_prev - d), 1: scaled difference, 2: potential
     potential_gamma: jax.Array | float = 0.99  # γ of the potential-based shaping (mode 2)
+    proximity_penalty: jax.Array | float = 0.0  # per step at zero clearance, falling to 0 at proximity_m
+    proximity_m: jax.Array | float = 0.2  # clearance (m) from which the proximity term starts
     # Curriculum episode pool (``train.curriculum``; None: episodes are drawn by the spawn rule).
     # Sorted by the oracle's path length (shortest first); resets draw from the first
     # ``pool_count`` entries.
