@@ -372,6 +372,11 @@ class EnvConfig(StrictModel):
     plan_waypoints: int = Field(
         2, ge=1, le=8, description="waypoints observed (observe_plan)", json_schema_extra=STATIC
     )
+    end_on_collision: bool = Field(
+        False, description="a collision (touching a wall or an obstacle) ends the episode, a"
+        " failure, as navigation benchmarks count it (off: the paper's env, where the robot slides"
+        " along the wall and pays collision_penalty)", json_schema_extra=STATIC,
+    )  # fmt: skip
     final_obs: bool = Field(
         True,
         description="put the pre-reset observation in info['final_obs'] (costs a 2nd lidar cast;"

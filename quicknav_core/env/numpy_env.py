@@ -542,7 +542,7 @@ class QuickNavNumpyEnv(gym.Env):
             time=s["time"] + 1,
         )
         self._cast()
-        terminated = goal_reached
+        terminated = goal_reached or (collided and c.end_on_collision)
         truncated = (s["time"] >= c.max_steps) and not terminated
         info = {
             "goal_reached": goal_reached,

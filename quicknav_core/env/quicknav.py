@@ -430,6 +430,8 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
                              path_prev, path, near - radius)  # fmt: skip
         time = state.time + 1
         truncated = (time >= params.max_steps_in_episode) & ~goal_reached
+        if self.config.end_on_collision:
+            truncated = truncated & ~collided
         moved = state.replace(
             pos=pos,
             theta=theta,
@@ -441,8 +443,9 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
             perturbation=perturbation,
             obstacles=obstacles,
         )
+        ended = goal_reached | collided if self.config.end_on_collision else goal_reached
         info = {
-            "terminated": goal_reached,
+            "terminated": ended,
             "truncated": truncated,
             "goal_reached": goal_reached,
             "collision": collided,
