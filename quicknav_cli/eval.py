@@ -56,6 +56,25 @@ def eval_request(
     return request
 
 
+def map_overrides(request: dict[str, Any], path: Path) -> dict[str, Any]:
+    """The env fields that put the request's policy (or baseline) on the map at ``path``."""
+    from quicknav_core.config import resolve_env
+    from quicknav_core.env.map_fit import fit_map
+    from quicknav_core.env.maps import MapError
+
+    base = run_env(request["run"]) if "run" in request else None
+    try:
+        env = resolve_env(request["env"], base)
+        fit = fit_map(env, path)
+    except (MapError, ValueError) as e:
+        fail(f"--map: {e}")
+    console.print(f"on {path}: grid {fit.grid_size} of {fit.cell_m:g} m cells, step limit"
+                  f" {fit.max_steps} (longest path {fit.longest_path_m:.1f} m)", highlight=False)  # fmt: skip
+    for message in fit.warnings():
+        warn(message)
+    return fit.env_overrides(str(path))
+
+
 def eval_cmd(
     run: Annotated[
         Path | None,
@@ -85,6 +104,12 @@ def eval_cmd(
                      " beam dropout, range bias, action latency and wheel asymmetry: success and"
                      " SPL per level (eval.json, robustness.png)."),
     ] = False,
+    on_map: Annotated[
+        Path | None,
+        typer.Option("--map", help="Evaluate on this map (a map_server .yaml): the grid follows"
+                     " the map at the policy's cell size and the step limit its longest path"
+                     " (--set wins over both)."),
+    ] = None,
     print_only: PrintConfigOpt = False,
 ) -> None:
     """Evaluate a trained run or a baseline on held-out rooms: success, SPL, steps, collisions."""
@@ -94,6 +119,8 @@ def eval_cmd(
         fail(f"--split {split!r}: allowed values are test and train")
     request = eval_request(run, policy, episodes, seed, deterministic, split, config, set_,
                            robustness)  # fmt: skip
+    if on_map is not None:
+        request["env"] = {**map_overrides(request, on_map), **request["env"]}
     cfg = resolved(resolve_eval, request, trained_env=run_env)
     if print_only:
         print_config(cfg)

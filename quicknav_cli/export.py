@@ -31,6 +31,11 @@ def export_cmd(
         str | None,
         typer.Option(envvar="QUICKNAV_API_TOKEN", help="Bearer token, if the service wants one."),
     ] = None,
+    on_map: Annotated[
+        Path | None,
+        typer.Option("--map", help="A map the robot drives (map_server .yaml): written with the"
+                     " policy at its cell size (map.npz) with its frame, for the SDK's Navigator."),
+    ] = None,
 ) -> None:
     """Export a trained policy: policy.onnx (deterministic action, recurrent state as inputs and
     outputs, dynamic batch) and policy.json (observation layout, beam angles, action units, state,
@@ -39,6 +44,8 @@ def export_cmd(
         fail(f"--format {fmt!r}: allowed values are onnx")
     if (run is None) == (job is None):
         fail("give either a run folder or --job ID")
+    if job is not None and on_map is not None:
+        fail("--map: export the run folder (quicknav jobs download) to ship a map with its policy")
     if job is not None:
         try:
             from quicknav_client import QuickNavClient, QuickNavError
@@ -62,9 +69,11 @@ def export_cmd(
     if not run_dir.is_dir():
         fail(f"run folder {run_dir} does not exist")
     enable_compilation_cache()
+    from quicknav_core.env.maps import MapError
+
     try:
-        doc = export_run(run_dir, out)
-    except FileNotFoundError as e:
+        doc = export_run(run_dir, out, map_path=on_map)
+    except (FileNotFoundError, MapError) as e:
         fail(str(e))
     state = ", ".join(f"{s['input']} {s['shape']}" for s in doc["state"]) or "none"
     held = doc["held_out"]
@@ -75,3 +84,7 @@ def export_cmd(
         f" obs {doc['observation']['size']}, state: {state}; {success}",
         highlight=False,
     )
+    if doc.get("map"):
+        m = doc["map"]
+        console.print(f"wrote {out}/map.npz: {m['source']} on a grid of {m['grid'][0]} cells of"
+                      f" {m['cell_m']:g} m ({m['free_kept']:.0%} of its free space kept)", highlight=False)  # fmt: skip

@@ -28,10 +28,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from quicknav_core.env.constants import PATH_SCALE_M, observation_parts
 from quicknav_core.layout import RUN, RunFolder
 from quicknav_core.runtime import runtime_or_new
 
 ONNX_FILE, MANIFEST_FILE = RUN.policy, RUN.manifest  # the layout's names
+MAP_FILE = "map.npz"  # with --map: the map as the policy sees it
 START_DOC = "bool (B,): true on an episode's first step; the network resets that env's state itself"
 FORMAT_VERSION = 1
 OPSET = 23
@@ -81,34 +83,43 @@ def to_onnx_model(policy, obs_dim: int):
 
 
 # --------------------------------------------------------------------------- the manifest
+def _part_meanings(env) -> dict[str, tuple[str, str, str]]:
+    """(meaning, units, normalisation) of every part ``observation_parts`` can name."""
+    room, max_range = env.room_size, env.lidar_max_range
+    cell = env.room_size / env.grid_size
+    w, look = env.plan_waypoints, env.plan_lookahead
+    return {
+        "position": ("robot x, y in the room frame", "m", f"divided by room_size ({room:g} m)"),
+        "heading": ("sin(theta), cos(theta) of the robot's heading in the room frame", "1", "none"),
+        "ranges": ("lidar range per beam (beam_angles_rad order), capped at lidar_max_range", "m",
+                   f"divided by lidar_max_range ({max_range:g} m): 1.0 = no return"),
+        "wall_hits": ("1.0 where the beam's return is a wall", "1", "none"),
+        "goal_hits": ("1.0 where the beam's return is the goal disc (a real lidar does not see"
+                      " goals: leave 0, or draw the goal disc as OnnxPolicy does)", "1", "none"),
+        "goal_position": ("goal x, y in the room frame", "m", f"divided by room_size ({room:g} m)"),
+        "goal_distance": ("distance robot-goal", "m", f"divided by room_size ({room:g} m)"),
+        "goal_bearing": ("sin, cos of the goal's bearing in the robot frame (counter-clockwise"
+                         " from straight ahead)", "1", "none (sin 0, cos 1 at the goal)"),
+        "waypoints": (f"{w} waypoint(s) of the global plan in the robot frame, (forward, left)"
+                      f" each: the centre of the cell i * {look} steps down the shortest 8-connected"
+                      " path of cells where the robot's disc fits (the goal itself once the path"
+                      " reaches the goal's cell)", "m",
+                      f"waypoint i divided by (i * {look} + 1) * sqrt(2) * cell ({cell:g} m),"
+                      " clipped to [-1, 1]"),
+        "path_left": ("length of that path from the robot's cell to the goal's", "m",
+                      f"tanh(length / {PATH_SCALE_M:g} m)"),
+    }  # fmt: skip
+
+
 def observation_layout(env) -> list[dict[str, Any]]:
-    """Every slice of the flat observation: name, slice, meaning, units, normalisation."""
-    b, room, max_range = env.lidar_beams, env.room_size, env.lidar_max_range
-    layout = [
-        {"name": "position", "slice": [0, 2], "meaning": "robot x, y in the room frame",
-         "units": "m", "normalisation": f"divided by room_size ({room:g} m)"},
-        {"name": "heading", "slice": [2, 4], "meaning": "sin(theta), cos(theta) of the robot's"
-         " heading in the room frame", "units": "1", "normalisation": "none"},
-        {"name": "ranges", "slice": [4, 4 + b], "meaning": "lidar range per beam (beam_angles_rad"
-         " order), capped at lidar_max_range", "units": "m",
-         "normalisation": f"divided by lidar_max_range ({max_range:g} m): 1.0 = no return"},
-        {"name": "wall_hits", "slice": [4 + b, 4 + 2 * b], "meaning": "1.0 where the beam's return"
-         " is a wall", "units": "1", "normalisation": "none"},
-        {"name": "goal_hits", "slice": [4 + 2 * b, 4 + 3 * b], "meaning": "1.0 where the beam's"
-         " return is the goal disc (a real lidar does not see goals: leave 0)", "units": "1",
-         "normalisation": "none"},
-    ]  # fmt: skip
-    if env.observe_goal:
-        o = 4 + 3 * b
-        layout += [
-            {"name": "goal_position", "slice": [o, o + 2], "meaning": "goal x, y in the room frame",
-             "units": "m", "normalisation": f"divided by room_size ({room:g} m)"},
-            {"name": "goal_distance", "slice": [o + 2, o + 3], "meaning": "distance robot-goal",
-             "units": "m", "normalisation": f"divided by room_size ({room:g} m)"},
-            {"name": "goal_bearing", "slice": [o + 3, o + 5], "meaning": "sin, cos of the goal's"
-             " bearing in the robot frame (counter-clockwise from straight ahead)", "units": "1",
-             "normalisation": "none (sin 0, cos 1 at the goal)"},
-        ]  # fmt: skip
+    """Every slice of the flat observation: name, slice, meaning, units, normalisation (in the
+    order of ``constants.observation_parts``, the one description the env follows)."""
+    meanings, layout, start = _part_meanings(env), [], 0
+    for name, low, _ in observation_parts(env):
+        meaning, units, normalisation = meanings[name]
+        layout.append({"name": name, "slice": [start, start + len(low)], "meaning": meaning,
+                       "units": units, "normalisation": normalisation})  # fmt: skip
+        start += len(low)
     return layout
 
 
@@ -161,14 +172,21 @@ def _initial_value(value) -> Any:
 
 # --------------------------------------------------------------------------- a run folder
 def export_run(run_dir: Path, out_dir: Path, provenance: dict[str, Any] | None = None,
-               trainer=None, runtime=None) -> dict[str, Any]:  # fmt: skip
+               trainer=None, runtime=None, map_path: str | Path | None = None) -> dict[str, Any]:  # fmt: skip
     """Write ``policy.onnx`` and ``policy.json`` of a run folder's last checkpoint into ``out_dir``
     (checked by onnxruntime against the JAX policy on random observations before returning).
-    ``trainer``: a warm trainer of the run's config (a worker's), which spares building one."""
+    ``trainer``: a warm trainer of the run's config (a worker's), which spares building one.
+    ``map_path``: a map the robot drives, written as the policy sees it (``map.npz``, and the
+    manifest's ``map``: its frame) for ``quicknav_client.navigate.Navigator``."""
     from quicknav_core.train.run import load_run
 
     run_dir, out_dir = Path(run_dir), Path(out_dir)
     config, trainer, state, meta = load_run(run_dir, trainer, runtime)
+    fit = None
+    if map_path is not None:
+        from quicknav_core.env.map_fit import fit_map
+
+        fit = fit_map(config.env, map_path)  # before the model: a map that cannot be driven fails fast
     policy = trainer.policy(state)
     model = to_onnx_model(policy, config.env.obs_dim)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -183,8 +201,29 @@ def export_run(run_dir: Path, out_dir: Path, provenance: dict[str, Any] | None =
     info = {"run": run_dir.name, **(provenance or {}),
             "env_steps": meta.get("env_steps"), "seed": config.seed}  # fmt: skip
     doc = manifest(config, policy, meta, info, success)
+    if fit is not None:
+        np.savez_compressed(out_dir / MAP_FILE, walls=fit.walls)
+        doc["map"] = map_entry(fit)
+    else:
+        (out_dir / MAP_FILE).unlink(missing_ok=True)
     (out_dir / MANIFEST_FILE).write_text(json.dumps(doc, indent=2))
     return doc
+
+
+def map_entry(fit) -> dict[str, Any]:
+    """The manifest's ``map``: the exported grid and how its frame sits in the map's."""
+    return {
+        "file": MAP_FILE, "source": Path(fit.path).name,
+        "walls": "map.npz['walls']: (rows, cols) bool, True = wall; row r spans y in [r, r+1) * cell_m"
+                 " of the grid frame, column c spans x",
+        "cell_m": fit.cell_m, "grid": [fit.grid_size, fit.grid_size],
+        "origin": list(fit.origin),
+        "grid_corner_in_map": list(fit.grid_corner_in_map),
+        "frame": "poses and goals in the map frame (the YAML's origin frame, as tf2 gives map ->"
+                 " base_link) minus grid_corner_in_map are the grid frame the policy drives in",
+        "free_kept": round(fit.free_kept, 4), "longest_path_m": round(fit.longest_path_m, 2),
+        "max_steps": fit.max_steps,
+    }  # fmt: skip
 
 
 HELD_OUT_FIELDS = ("episodes", "success_rate", "success_ci95", "spl")

@@ -76,14 +76,33 @@ def resample(scan: Any, beam_angles: np.ndarray, fov_deg: float, max_range: floa
         width = math.radians(fov_deg) / (beams - 1)
     # angle of every return relative to every beam, wrapped into [-pi, pi)
     rel = (angles[None, :] - beam_angles.astype(np.float64)[:, None] + math.pi) % (2.0 * math.pi) - math.pi
-    inside = (rel >= -width / 2) & (rel < width / 2) & valid[None, :]
+    sector = (rel >= -width / 2) & (rel < width / 2)
+    # a beam whose direction the scan does not sweep (valid reading or not) is blind
+    span = abs(angles[-1] - angles[0]) + (abs(angles[1] - angles[0]) if angles.size > 1 else 0.0)
+    start = min(angles[0], angles[-1]) - (span - abs(angles[-1] - angles[0])) / 2
+    blind = ((beam_angles.astype(np.float64) - start) % (2.0 * math.pi)) > span + 1e-9
+    if blind.any():
+        # a beam the scanner cannot see is not "no return": that would read as open space
+        seen = np.degrees(angles)
+        raise ValueError(
+            f"scan: covers {seen.min():.0f} to {seen.max():.0f} degrees; {int(blind.sum())} of the"
+            f" policy's {beams} beams (at {_degrees(beam_angles[blind])}) fall outside it. The policy"
+            f" was trained for a {fov_deg:g}-degree lidar: train one for this scanner (env.lidar_fov_deg"
+            f" = the scanner's field of view, e.g. 270) or give a scan that covers every beam")
+    inside = sector & valid[None, :]
     nearest = np.where(inside, ranges[None, :], np.inf).min(axis=1)
     return nearest.astype(f32)
 
 
+def _degrees(angles: np.ndarray, most: int = 6) -> str:
+    text = ", ".join(f"{math.degrees(float(a)):.0f}" for a in angles[:most])
+    return text + (f" and {angles.size - most} more" if angles.size > most else "") + " degrees"
+
+
 class Observer:
-    """Builds a policy's observation vector from what a robot has (a scan, a pose, a goal), as
-    the manifest describes it; no model needed."""
+    """Builds a policy's observation vector from what a robot has (a scan, a pose, a goal and, for
+    a policy that follows a global plan, the plan's features), part by part as the manifest's
+    observation layout lists them; no model needed."""
 
     def __init__(self, manifest: Mapping[str, Any]):
         env, lidar = manifest["env"], manifest["lidar"]
@@ -93,13 +112,21 @@ class Observer:
         self.room_size = float(env["room_size"])
         self.goal_radius = float(env["goal_radius"])
         self.observe_goal = bool(env["observe_goal"])
+        self.observe_plan = bool(env.get("observe_plan", False))
         self.obs_size = int(manifest["observation"]["size"])
+        layout = manifest["observation"].get("layout")
+        # manifests written before the layout was generic always started with the pose
+        self.parts = [p["name"] for p in layout] if layout else None
 
-    def __call__(self, scan: Any, pose: Any, goal: Any = None) -> np.ndarray:
-        """The policy's observation vector (float32) for a scan, a pose and a goal."""
+    def __call__(self, scan: Any, pose: Any, goal: Any = None, plan: Any = None) -> np.ndarray:
+        """The policy's observation vector (float32) for a scan, a pose (x, y, theta in the frame
+        the goal is in) and a goal; ``plan``: the plan's features (``Planner.features``)."""
         x, y, theta = (float(v) for v in pose)
         if self.observe_goal and goal is None:
             raise ValueError("goal: this policy observes its goal; give goal=(x, y) in metres")
+        if self.observe_plan and plan is None:
+            raise ValueError("plan: this policy follows a global plan; give plan= the features of"
+                             " quicknav_client.navigate.Planner (or drive it with Navigator)")  # fmt: skip
         b = self.beam_angles.size
         ranges = resample(scan, self.beam_angles, self.fov_deg, self.max_range)
         wall = np.isfinite(ranges) & (ranges <= self.max_range)
@@ -121,9 +148,11 @@ class Observer:
             ranges = np.where(goal_hit, t_goal, ranges).astype(f32)
             wall &= ~goal_hit
         room = f32(self.room_size)
-        parts = [np.asarray([x, y], f32) / room, [math.sin(theta), math.cos(theta)],
-                 ranges / f32(self.max_range), wall.astype(f32), goal_hit.astype(f32)]  # fmt: skip
-        if self.observe_goal:
+        parts: dict[str, Any] = {
+            "position": np.asarray([x, y], f32) / room, "heading": [math.sin(theta), math.cos(theta)],
+            "ranges": ranges / f32(self.max_range), "wall_hits": wall, "goal_hits": goal_hit,
+        }  # fmt: skip
+        if goal is not None:
             rx, ry = goal[0] - x, goal[1] - y
             dist = math.hypot(rx, ry)
             if dist > 0:
@@ -131,8 +160,18 @@ class Observer:
                 left = (math.cos(theta) * ry - math.sin(theta) * rx) / dist
             else:
                 fwd, left = 1.0, 0.0
-            parts += [np.asarray(goal, f32) / room, [dist / self.room_size], [left], [fwd]]
-        obs = np.concatenate([np.asarray(p, f32) for p in parts]).astype(f32)
+            parts.update(goal_position=np.asarray(goal, f32) / room,
+                         goal_distance=[dist / self.room_size], goal_bearing=[left, fwd])  # fmt: skip
+        if plan is not None:
+            plan = np.asarray(plan, f32).reshape(-1)
+            parts.update(waypoints=plan[:-1], path_left=plan[-1:])
+        names = self.parts or ["position", "heading", "ranges", "wall_hits", "goal_hits"] + (
+            ["goal_position", "goal_distance", "goal_bearing"] if self.observe_goal else [])
+        missing = [n for n in names if n not in parts]
+        if missing:
+            raise ValueError(f"the policy's observation has parts this client cannot build: {missing}"
+                             " (a newer quicknav-client may)")  # fmt: skip
+        obs = np.concatenate([np.asarray(parts[n], f32).reshape(-1) for n in names]).astype(f32)
         if obs.size != self.obs_size:
             raise ValueError(f"built an observation of {obs.size} entries; the policy takes {self.obs_size}")
         return obs
@@ -169,13 +208,14 @@ class OnnxPolicy:
         self._state = [np.full([1, *s["shape"][1:]], s["initial"], np.dtype(s["dtype"]))
                        for s in self.manifest["state"]]  # fmt: skip
 
-    def observation(self, scan: Any, pose: Any, goal: Any = None) -> np.ndarray:
-        """The policy's observation vector (float32) for a scan, a pose and a goal."""
-        return self.observer(scan, pose, goal)
+    def observation(self, scan: Any, pose: Any, goal: Any = None, plan: Any = None) -> np.ndarray:
+        """The policy's observation vector (float32) for a scan, a pose, a goal and a plan."""
+        return self.observer(scan, pose, goal, plan)
 
-    def act(self, scan: Any, pose: Any, goal: Any = None) -> tuple[float, float]:
-        """(left, right) wheel speeds in m/s for this step (the policy's deterministic action)."""
-        return self.act_on(self.observation(scan, pose, goal))
+    def act(self, scan: Any, pose: Any, goal: Any = None, plan: Any = None) -> tuple[float, float]:
+        """(left, right) wheel speeds in m/s for this step (the policy's deterministic action);
+        ``plan``: the plan's features, for a policy that follows one (``Navigator`` finds them)."""
+        return self.act_on(self.observation(scan, pose, goal, plan))
 
     def act_on(self, obs: np.ndarray) -> tuple[float, float]:
         """(left, right) wheel speeds in m/s for an observation vector built as in training."""

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Annotated, ClassVar, Literal
 from pydantic import Field, model_validator
 
 from quicknav_core.config.base import STATIC, TRACED, Split, StrictModel, static_fields, traced
-from quicknav_core.env.constants import GOAL_DIM, LATENCY_MAX_STEPS, POSE_DIM
+from quicknav_core.env.constants import LATENCY_MAX_STEPS
 
 if TYPE_CHECKING:  # pragma: no cover - import only for type checkers, keeps this module JAX-free
     from quicknav_core.env.quicknav import QuickNavEnv
@@ -33,6 +33,7 @@ class RewardConfig(StrictModel):
 
     r_t = -step_penalty - 1[collision]*collision_penalty - min(C_t, cycle_cap)*cycle_penalty
           + progress_term + 1[goal reached]*goal_reward + 1[new cell]*exploration_reward
+          - max(0, 1 - clearance/proximity_m)*proximity_penalty
     with progress_term = sign(d_{t-1} - d_t) * progress_reward (``progress="sign"``) or
     progress_reward * (d_{t-1} - d_t) / (max_wheel_speed * dt) (``progress="linear"``) or
     progress_reward * (d_{t-1} - potential_gamma * d'_t) / (max_wheel_speed * dt) with d'_t = 0 at
@@ -74,9 +75,19 @@ class RewardConfig(StrictModel):
         description="λe, paid on entering a cell not yet visited this episode (0 = the paper's formula)",
         json_schema_extra=TRACED,
     )
-    progress: Literal["sign", "linear", "potential"] = Field(
+    proximity_penalty: float = Field(
+        0.0, ge=0.0, le=1000.0, description="λn, times how far the nearest wall or obstacle is"
+        " inside proximity_m of the robot's edge (0 to 1 as it closes in; 0 = the paper's formula)",
+        json_schema_extra=TRACED,
+    )  # fmt: skip
+    proximity_m: float = Field(
+        0.2, gt=0.0, le=100.0, description="the distance from the robot's edge within which"
+        " proximity_penalty grows, metres", json_schema_extra=TRACED,
+    )  # fmt: skip
+    progress: Literal["sign", "linear", "potential", "path"] = Field(
         "sign", description="shape of the progress term: the paper's sign, a scaled distance"
-        " difference, or potential-based shaping (its optimal policy is the unshaped one's)",
+        " difference, potential-based shaping (its optimal policy is the unshaped one's), or the"
+        " scaled decrease of the planned path's length to the goal ('path': needs observe_plan)",
         json_schema_extra=traced("progress_mode"),
     )
     potential_gamma: float = Field(
@@ -166,6 +177,48 @@ class RandomizeConfig(StrictModel):
     def wheel_scale_max(self) -> float:
         """The fastest a wheel turns, as a multiple of its command."""
         return max(self.wheel_scale_left[1], self.wheel_scale_right[1])
+
+
+Count = Annotated[int, Field(ge=0, le=64)]
+ObstacleRadius = _pair(float, 0.01, 10.0)
+Speed = _pair(float, 0.0, 10.0)
+
+
+class ObstaclesConfig(StrictModel):
+    """Obstacles the map does not show (``env.obstacles``): static boxes and moving people placed
+    in open free space at every episode start, seen only by the lidar. Counts fix shapes; the
+    ranges are traced numbers (``EnvParams.obstacles``). Off (None) for the paper's presets."""
+
+    static: Count = Field(0, description="static obstacles (boxes, furniture) per episode, at most"
+                          " (0..64; one whose drawn cell is not open is left out)",
+                          json_schema_extra=STATIC)  # fmt: skip
+    moving: Count = Field(0, description="moving obstacles (people) per episode, at most (0..64)",
+                          json_schema_extra=STATIC)  # fmt: skip
+    static_radius_m: ObstacleRadius = Field(
+        (0.12, 0.22), description="radius range of static ones, metres (below half a cell)",
+        json_schema_extra=TRACED,
+    )  # fmt: skip
+    moving_radius_m: ObstacleRadius = Field(
+        (0.18, 0.22), description="radius range of people, metres (below half a cell)",
+        json_schema_extra=TRACED,
+    )  # fmt: skip
+    speed_mps: Speed = Field((0.2, 0.6), description="walking speed range of people, m/s",
+                             json_schema_extra=TRACED)  # fmt: skip
+    clearance_m: float = Field(0.6, ge=0.0, le=100.0, description="no obstacle within this of"
+                               " the start or the goal (beyond its radius), metres",
+                               json_schema_extra=TRACED)  # fmt: skip
+
+    @model_validator(mode="after")
+    def _ordered(self) -> ObstaclesConfig:
+        for name in ("static_radius_m", "moving_radius_m", "speed_mps"):
+            lo, hi = getattr(self, name)
+            if lo > hi:
+                raise ValueError(f"{name}=[{lo:g}, {hi:g}]: a range is [low, high]; allowed: low <= high")
+        return self
+
+    @property
+    def count(self) -> int:
+        return self.static + self.moving
 
 
 class FloorplanConfig(StrictModel):
@@ -301,6 +354,29 @@ class EnvConfig(StrictModel):
     observe_goal: bool = Field(
         True, description="include goal position/distance/bearing in obs", json_schema_extra=STATIC
     )
+    observe_pose: bool = Field(
+        True, description="include the robot's position and heading in the room frame in obs"
+        " (a policy meant for buildings it never saw leaves them out: they are the room's frame,"
+        " not the robot's)", json_schema_extra=STATIC,
+    )  # fmt: skip
+    observe_plan: bool = Field(
+        False, description="include the global plan in obs: the next waypoints of the shortest"
+        " path on the known map to the goal, in the robot's frame, and the path's length left"
+        " (the env plans at every episode start; see docs: a learned local planner)",
+        json_schema_extra=STATIC,
+    )  # fmt: skip
+    plan_lookahead: int = Field(
+        3, ge=1, le=64, description="cells along the planned path between waypoints (the"
+        " waypoint i is i * plan_lookahead cells ahead)", json_schema_extra=STATIC,
+    )  # fmt: skip
+    plan_waypoints: int = Field(
+        2, ge=1, le=8, description="waypoints observed (observe_plan)", json_schema_extra=STATIC
+    )
+    end_on_collision: bool = Field(
+        False, description="a collision (touching a wall or an obstacle) ends the episode, a"
+        " failure, as navigation benchmarks count it (off: the paper's env, where the robot slides"
+        " along the wall and pays collision_penalty)", json_schema_extra=STATIC,
+    )  # fmt: skip
     final_obs: bool = Field(
         True,
         description="put the pre-reset observation in info['final_obs'] (costs a 2nd lidar cast;"
@@ -313,16 +389,26 @@ class EnvConfig(StrictModel):
         description="sensor and actuator randomisation drawn per env per episode (None: off, the"
         " plain env); see RandomizeConfig",
     )
+    obstacles: ObstaclesConfig | None = Field(
+        None, description="obstacles the map does not show, seen only by the lidar (None: none,"
+        " the paper's env); see ObstaclesConfig",
+    )  # fmt: skip
 
     # properties that fix compiled code besides the STATIC fields (a randomised env carries its
     # perturbation in the state; a robot wider than a cell tests more cells for collisions)
-    DERIVED_STATIC: ClassVar[tuple[str, ...]] = ("randomized", "collision_reach")
+    DERIVED_STATIC: ClassVar[tuple[str, ...]] = ("randomized", "collision_reach", "obstacle_counts")
 
     def compile_key(self) -> tuple:
         """What the env's compiled code depends on: the STATIC fields and DERIVED_STATIC. Envs
         with equal keys share compiled programs (numbers and banks are traced)."""
         names = (*static_fields(type(self)), *self.DERIVED_STATIC)
         return tuple((name, getattr(self, name)) for name in names)
+
+    @property
+    def obstacle_counts(self) -> tuple[int, int] | None:
+        """(static, moving) obstacles per episode, None without them: they fix the state's shape."""
+        o = self.obstacles
+        return None if o is None or o.count == 0 else (o.static, o.moving)
 
     @property
     def randomized(self) -> bool:
@@ -376,8 +462,10 @@ class EnvConfig(StrictModel):
 
     @property
     def obs_dim(self) -> int:
-        """Length of the flat observation vector."""
-        return POSE_DIM + 3 * self.lidar_beams + (GOAL_DIM if self.observe_goal else 0)
+        """Length of the flat observation vector (``env.constants.observation_parts``)."""
+        from quicknav_core.env.constants import observation_size
+
+        return observation_size(self)
 
     @model_validator(mode="after")
     def _check_geometry(self) -> EnvConfig:
@@ -391,6 +479,8 @@ class EnvConfig(StrictModel):
                 " robot could pass through walls; allowed range max_wheel_speed*dt <= room_size/grid_size"
             )
         self._check_randomize()
+        self._check_obstacles()
+        self._check_plan()
         self._check_source()
         if self.rooms != "carved":
             return self
@@ -421,6 +511,28 @@ class EnvConfig(StrictModel):
             if changed:
                 raise ValueError(f"{', '.join(changed)} shape carved rooms only; with rooms="
                                  f"{self.rooms!r} leave {'it' if len(changed) == 1 else 'them'} unset")  # fmt: skip
+
+    def _check_plan(self) -> None:
+        if self.reward.progress == "path" and not self.observe_plan:
+            raise ValueError("reward.progress='path' pays for the planned path's decrease, and only"
+                             " an env that plans has one; allowed: with observe_plan=true, or"
+                             " progress 'sign', 'linear' or 'potential'")  # fmt: skip
+
+    def _check_obstacles(self) -> None:
+        """Obstacles narrower than a cell: their wall test and the robot's are the four-cell one."""
+        o = self.obstacles
+        if o is None:
+            return
+        c = self.cell_size
+        for name in ("static_radius_m", "moving_radius_m"):
+            if getattr(o, name)[1] >= 0.5 * c:
+                raise ValueError(f"obstacles.{name}={list(getattr(o, name))}: an obstacle's disc must"
+                                 f" be narrower than a cell of {c:g} m; allowed: radius below"
+                                 f" {0.5 * c:g} m")  # fmt: skip
+        if o.moving and o.speed_mps[1] * self.dt >= c:
+            raise ValueError(f"obstacles.speed_mps={list(o.speed_mps)}: a person would pass"
+                             f" through walls at {o.speed_mps[1] * self.dt:g} m per step; allowed:"
+                             f" below {c / self.dt:g} m/s")  # fmt: skip
 
     def _check_randomize(self) -> None:
         """The randomised robot keeps the geometry rules of the plain one at its extremes."""

@@ -58,6 +58,18 @@ _PAPER_GTRXL = {
     "memory_length": 32,
 }
 
+# The building preset's env: what a robot in a real building meets, in generated floor plans only
+_BUILDING_ENV = {
+    "rooms": "floorplan", "grid_size": 24, "room_size": 12.0, "train_rooms": 1024,
+    "test_rooms": 256, "lidar_beams": 32, "max_steps": 300,
+    # the robot's frame only: its pose and the goal's position in a room's frame do not carry to
+    # another building; the plan's waypoints and the path left do
+    "observe_pose": False, "observe_goal": False, "observe_plan": True,
+    "plan_lookahead": 1, "plan_waypoints": 3,
+    "obstacles": {"static": 6, "moving": 3},
+    "reward": {"progress": "path"},
+}  # fmt: skip
+
 PRESETS: dict[str, dict[str, Any]] = {
     "demo": {
         "description": "Fast demo: PPO, 2x64 MLP, default 16x16 rooms with the goal observed; "
@@ -79,6 +91,26 @@ PRESETS: dict[str, dict[str, Any]] = {
             # (a demo job no longer carries a "not a whole number of updates" note)
             "total_steps": 1_503_232,
             "chunk_steps": 32_768,
+        },
+    },
+    "building": {
+        "description": "Drive a building: a learned local planner (PPO, 2x128 MLP) that follows the"
+        " map's global plan (waypoints in the robot's frame) and avoids, by its lidar, what the map"
+        " does not show (boxes, people). Trained on generated floor plans only: its figures on"
+        " real maps are those of a building it never saw. Start here for your own building.",
+        "notes": "Everything is QuickNav's (not in the paper): the plan in the observation, the"
+        " path-progress reward, the obstacles and the training budget.",
+        "config": {
+            "env": _BUILDING_ENV,
+            "algorithm": {
+                "name": "ppo", "implementation": "quicknav", "learning_rate": 3e-4,
+                "num_steps": 64, "num_minibatches": 8, "num_epochs": 4, "gamma": 0.98,
+                "ent_coef": 0.005,
+            },
+            "network": {"kind": "mlp", "hidden_sizes": [128, 128]},
+            "num_envs": 256,
+            "total_steps": 8_388_608,
+            "chunk_steps": 262_144,
         },
     },
     "paper-ppo": {

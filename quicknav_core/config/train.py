@@ -298,6 +298,12 @@ def unhonoured_fields(config: TrainConfig) -> list[tuple[str, str]]:
             f" 32-bit integer; allowed: up to {REJAX_MAX_STEPS}"
             + (", or algorithm.implementation='quicknav' (QuickNav's PPO counts updates)"
                if kind == "rejax-ppo" else ""))))  # fmt: skip
+    if kind.startswith("rejax-") and config.env.observe_plan:
+        out.append(("env.observe_plan", (
+            f"env.observe_plan=true: rejax's {kind[6:].upper()} steps its envs with vmap(env.step),"
+            " which plans every env's next episode at every step (a shortest-path search each);"
+            " QuickNav's PPO plans only for the envs that reset; allowed: false, or"
+            " algorithm.implementation='quicknav' with PPO")))  # fmt: skip
     learned, init = net.learned_log_std, net.init_log_std
     if kind == "rejax-ppo" and learned:
         out.append(("network.learned_log_std", (

@@ -40,14 +40,15 @@ def batched_step(env, keys, state, action, params, reset_capacity: int | None = 
     """``vmap(env.step)`` with auto-reset and final observations, casting the lidar ~once per env.
 
     ``env.step`` under vmap casts the lidar twice for every env (the pre-reset pose for the final
-    observation, the kept pose for the next one), because a per-env branch becomes a select.
-    At the batch level only the few envs that just ended need a second cast: their fresh
-    states are gathered (up to ``reset_capacity`` of them), cast, and scattered back; a step in
-    which more envs end (e.g. a synchronised truncation) takes the full path. The result equals
-    ``vmap(env.step)`` exactly. Returns (obs, state, reward, info, final_obs).
+    observation, the kept pose for the next one), and with ``observe_plan`` plans for every env,
+    because a per-env branch becomes a select. At the batch level only the envs that just ended
+    need a fresh episode: their fresh states are gathered ``reset_capacity`` at a time, planned
+    and cast, and scattered back, until none is left (a step in which many end, a synchronised
+    truncation, takes a few rounds). The result equals ``vmap(env.step)`` exactly.
+    Returns (obs, state, reward, info, final_obs).
     """
     n = action.shape[0]
-    k = reset_capacity if reset_capacity is not None else max(8, n // 16)
+    k = min(n, reset_capacity if reset_capacity is not None else max(8, n // 32))
     moved, reward, info = jax.vmap(env.transition, in_axes=(0, 0, 0, None))(
         keys, state, action, params
     )
@@ -55,18 +56,19 @@ def batched_step(env, keys, state, action, params, reset_capacity: int | None = 
     moved = jax.vmap(env.with_lidar, in_axes=(0, None))(moved, params)
     final = jax.vmap(env.get_obs, in_axes=(0, None))(moved, params)
     fresh = jax.vmap(env.spawn, in_axes=(0, None))(keys, params)
-    cast_all = lambda f: jax.vmap(env.with_lidar, in_axes=(0, None))(f, params)  # noqa: E731
-    if k >= n:
-        fresh = cast_all(fresh)
-    else:
 
-        def cast_ended(f):
-            # padding repeats index 0: its (correct) fresh lidar is written back to itself
-            idx = jnp.nonzero(done, size=k, fill_value=0)[0]
-            part = cast_all(jax.tree.map(lambda x: x[idx], f))
-            return jax.tree.map(lambda full, p: full.at[idx].set(p), f, part)
+    def start(f):  # a fresh episode's plan and first scan
+        return jax.vmap(lambda s: env.with_lidar(env.with_plan(s, params), params))(f)
 
-        fresh = jax.lax.cond(jnp.sum(done) > k, cast_all, cast_ended, fresh)
+    def round_(carry):
+        f, todo = carry
+        idx = jnp.nonzero(todo, size=k, fill_value=-1)[0]
+        idx = jnp.where(idx < 0, idx[0], idx)  # padding repeats a pending env: written twice, same
+        part = start(jax.tree.map(lambda x: x[idx], f))
+        f = jax.tree.map(lambda full, p: full.at[idx].set(p), f, part)
+        return f, todo.at[idx].set(False)
+
+    fresh, _ = jax.lax.while_loop(lambda c: jnp.any(c[1]), round_, (fresh, done))
     kept = jax.tree.map(
         lambda a, b: jnp.where(done.reshape(done.shape + (1,) * (a.ndim - 1)), a, b), fresh, moved
     )

@@ -104,6 +104,22 @@ def disc_overlaps_wall(
     return disc_overlaps_wall_bits(pos, pack_rows(jnp.asarray(walls, bool)), cell, radius, reach)
 
 
+def wall_distance(pos: jax.Array, row_bits: jax.Array, cell: jax.Array | float) -> jax.Array:
+    """Metres from ``pos`` to the nearest wall cell of the 3x3 cells around its own (farther walls
+    are at least a cell away: ``cell`` if none is near)."""
+    g = row_bits.shape[0]
+    rc = jnp.floor(pos[::-1] / cell).astype(jnp.int32)
+    off = jnp.array([-1, 0, 1], jnp.int32)
+    rows = jnp.clip(rc[0] + off, 0, g - 1)
+    cols = jnp.clip(rc[1] + off, 0, g - 1)
+    walls = jax.vmap(lambda r: read_bit(_row_word(row_bits, r), cols))(rows)  # (3, 3)
+    y0, x0 = rows.astype(jnp.float32) * cell, cols.astype(jnp.float32) * cell
+    gap_y = jnp.maximum(jnp.maximum(y0 - pos[1], pos[1] - (y0 + cell)), 0.0)
+    gap_x = jnp.maximum(jnp.maximum(x0 - pos[0], pos[0] - (x0 + cell)), 0.0)
+    dist = jnp.sqrt(gap_y[:, None] ** 2 + gap_x[None, :] ** 2)
+    return jnp.min(jnp.where(walls, dist, cell))
+
+
 def move_with_sliding(
     pos: jax.Array,
     delta: jax.Array,

@@ -24,13 +24,16 @@ import gymnasium as gym
 import numpy as np
 
 from quicknav_core.env.carving import carve_room_np  # noqa: F401 (the twin's carver, as before)
-from quicknav_core.env.clearance import reach_cells, spawn_region
+from quicknav_core.env.clearance import disc_fits, reach_cells, spawn_region
 from quicknav_core.env.constants import (
     BIG,
     HIT_GOAL,
     HIT_NONE,
     HIT_WALL,
     LATENCY_MAX_STEPS,
+    OBSTACLE_ABSENT,
+    OBSTACLE_WORDS,
+    PATH_SCALE_M,
     beam_angles,
     check_split,
     observation_bounds,
@@ -43,6 +46,85 @@ if TYPE_CHECKING:  # pragma: no cover - the twin reads its config's fields, neve
 
 f32 = np.float32
 _BIG = f32(BIG)
+_INF = f32(1e9)  # env.plan.INF
+# 8 neighbours (d_row, d_col), orthogonal first: env.plan's order, so ties break the same way
+_NEIGHBOURS = ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (1, -1), (-1, 1), (-1, -1))
+
+
+def _shift_np(a: np.ndarray, dr: int, dc: int, fill) -> np.ndarray:
+    """out[r, c] = a[r + dr, c + dc] (``fill`` outside)."""
+    padded = np.pad(a, 1, constant_values=fill)
+    n, m = a.shape
+    return padded[1 + dr:1 + dr + n, 1 + dc:1 + dc + m]
+
+
+def _moves_np(usable: np.ndarray) -> list[tuple[int, int, np.ndarray, np.float32]]:
+    out = []
+    for dr, dc in _NEIGHBOURS:
+        ok = usable & _shift_np(usable, dr, dc, False)
+        if dr and dc:  # no corner cutting
+            ok = ok & _shift_np(usable, dr, 0, False) & _shift_np(usable, 0, dc, False)
+        out.append((dr, dc, ok, f32(np.sqrt(2.0)) if dr and dc else f32(1.0)))
+    return out
+
+
+def cell_field_np(usable: np.ndarray, goal_rc) -> np.ndarray:
+    """``env.plan.cell_field`` in NumPy: the same relaxations in the same order, so the same
+    float32 distances (cells to the goal's cell; >= 1e9 where unreachable)."""
+    d = np.full(usable.shape, _INF, f32)
+    d[goal_rc[0], goal_rc[1]] = f32(0.0)
+    d = np.where(usable, d, _INF).astype(f32)
+    moves = _moves_np(usable)
+    while True:
+        best = d
+        for dr, dc, ok, w in moves:
+            best = np.minimum(best, np.where(ok, (_shift_np(d, dr, dc, _INF) + w).astype(f32), _INF))
+        if not np.any(best < d):
+            return best
+        d = best
+
+
+def greedy_path_np(field: np.ndarray, usable: np.ndarray, start, steps: int) -> np.ndarray:
+    """``env.plan.greedy_path``: (steps, 2) cells down the field, never up (ties: the first)."""
+    n = field.shape[0]
+    r, c = int(start[0]), int(start[1])
+    out = np.zeros((steps, 2), np.int64)
+    for i in range(steps):
+        best, br, bc = field[r, c], r, c
+        for dr, dc in _NEIGHBOURS:
+            rr, cc = min(max(r + dr, 0), n - 1), min(max(c + dc, 0), n - 1)
+            ok = usable[rr, cc]
+            if dr and dc:
+                ok = ok and usable[min(max(r + dr, 0), n - 1), c] and usable[r, min(max(c + dc, 0), n - 1)]
+            d = field[rr, cc] if ok else _INF
+            if d < best:
+                best, br, bc = d, rr, cc
+        r, c = br, bc
+        out[i] = (r, c)
+    return out
+
+
+def plan_waypoints_np(field, usable, rc, goal, cell, lookahead: int, count: int) -> np.ndarray:
+    """``env.plan.plan_waypoints`` in NumPy."""
+    nodes = greedy_path_np(field, usable, rc, lookahead * count)
+    picked = nodes[lookahead - 1::lookahead]
+    centres = (picked[:, ::-1].astype(f32) + f32(0.5)) * f32(cell)
+    at_goal = field[picked[:, 0], picked[:, 1]] <= 0.0
+    return np.where(at_goal[:, None], np.asarray(goal, f32)[None, :], centres).astype(f32)
+
+
+def plan_features_np(pos, theta, waypoints, field, rc, cell, lookahead: int) -> np.ndarray:
+    """``env.plan.plan_features`` in NumPy."""
+    count = waypoints.shape[0]
+    rel = (waypoints - np.asarray(pos, f32)[None, :]).astype(f32)
+    c, s = f32(np.cos(theta)), f32(np.sin(theta))
+    fwd = c * rel[:, 0] + s * rel[:, 1]
+    left = c * rel[:, 1] - s * rel[:, 0]
+    reach = ((np.arange(1, count + 1, dtype=f32) * f32(lookahead) + f32(1.0)) * f32(np.sqrt(2.0))
+             * f32(cell)).astype(f32)  # fmt: skip
+    points = np.clip(np.stack([fwd, left], axis=-1) / reach[:, None], -1.0, 1.0).reshape(-1)
+    left_m = f32(min(float(field[rc[0], rc[1]]), 1e6)) * f32(cell)
+    return np.concatenate([points, [np.tanh(left_m / f32(PATH_SCALE_M))]]).astype(f32)
 
 
 def cast_lidar_np(
@@ -150,6 +232,45 @@ def disc_overlaps_wall_np(pos: np.ndarray, walls: np.ndarray, cell: float, radiu
     return bool(np.any(block & (dist2 < f32(radius) * f32(radius))))
 
 
+def place_obstacles_np(u: np.ndarray, config, free_cells: np.ndarray, walls: np.ndarray, cell,
+                       start: np.ndarray, goal: np.ndarray) -> dict[str, np.ndarray]:  # fmt: skip
+    """``env.obstacles.place`` in NumPy from (N, OBSTACLE_WORDS) uniforms in [0, 1)."""
+    o = config.obstacles
+    n, g = o.count, walls.shape[0]
+    f = free_cells[np.minimum(np.floor(u[:, 0] * free_cells.size).astype(np.int64), free_cells.size - 1)]
+    r, c = f // g, f % g
+    opened = np.ones(n, bool)
+    for dr, dc in _NEIGHBOURS:
+        opened &= ~walls[np.clip(r + dr, 0, g - 1), np.clip(c + dc, 0, g - 1)]
+    moving = np.arange(n) >= o.static
+    lo = np.where(moving, o.moving_radius_m[0], o.static_radius_m[0]).astype(f32)
+    hi = np.where(moving, o.moving_radius_m[1], o.static_radius_m[1]).astype(f32)
+    radius = (lo + u[:, 1].astype(f32) * (hi - lo)).astype(f32)
+    pos = ((np.stack([c, r], axis=-1).astype(f32) + f32(0.5)) * f32(cell)).astype(f32)
+    keep = radius + f32(o.clearance_m)
+    present = opened & (np.linalg.norm(pos - start[None, :], axis=-1) >= keep) & (
+        np.linalg.norm(pos - goal[None, :], axis=-1) >= keep)  # fmt: skip
+    angle = u[:, 2].astype(f32) * f32(2.0 * np.pi)
+    speed = np.where(moving, f32(o.speed_mps[0]) + u[:, 3].astype(f32) * f32(o.speed_mps[1] - o.speed_mps[0]), 0.0)
+    vel = (np.stack([np.cos(angle), np.sin(angle)], axis=-1) * speed[:, None]).astype(f32)
+    return {"pos": np.where(present[:, None], pos, f32(OBSTACLE_ABSENT)).astype(f32),
+            "vel": np.where(present[:, None], vel, f32(0.0)).astype(f32),
+            "radius": np.where(present, radius, f32(0.0)).astype(f32)}  # fmt: skip
+
+
+def obstacle_rays_np(pos, dx, dy, obstacles: dict[str, np.ndarray]) -> np.ndarray:
+    """``env.obstacles.ray_distances`` in NumPy."""
+    p, rad = obstacles["pos"], obstacles["radius"]
+    fx = (p[:, 0][None, :] - pos[0]).astype(f32)
+    fy = (p[:, 1][None, :] - pos[1]).astype(f32)
+    proj = fx * dx[:, None] + fy * dy[:, None]
+    perp2 = fx * fx + fy * fy - proj * proj
+    r2 = (rad * rad)[None, :]
+    half = np.sqrt(np.maximum(r2 - perp2, f32(0.0)))
+    meets = (rad[None, :] > 0) & (perp2 <= r2) & (proj + half >= 0)
+    return np.where(meets, np.maximum(proj - half, f32(0.0)), _BIG).min(axis=-1).astype(f32)
+
+
 class QuickNavNumpyEnv(gym.Env):
     """One QuickNav env in NumPy. Same observation, action, reward and episode rules as the JAX env."""
 
@@ -174,6 +295,7 @@ class QuickNavNumpyEnv(gym.Env):
         c = self.config
         self._cell = f32(c.room_size / c.grid_size)
         self._spawn_radius = c.spawn_radius
+        self._reach = c.collision_reach
         self._angles = beam_angles(c.lidar_beams, c.lidar_fov_deg)
         self._rooms: dict[int, np.ndarray] = {}
         self._bank_size = self.config.train_rooms if split == "train" else self.config.test_rooms
@@ -204,7 +326,7 @@ class QuickNavNumpyEnv(gym.Env):
         super().reset(seed=seed)
         if options and "walls" in options:
             obs = self.load(options["walls"], options["pos"], options["theta"], options["goal"],
-                            options.get("perturbation"))  # fmt: skip
+                            options.get("perturbation"), options.get("obstacles"))  # fmt: skip
             return obs, {}
         c = self.config
         rng = self.np_random
@@ -224,7 +346,11 @@ class QuickNavNumpyEnv(gym.Env):
         cand_xy = (np.stack([cand % g, cand // g], axis=-1).astype(f32) + f32(0.5)) * self._cell
         goal = cand_xy[np.argmax(((cand_xy - pos) ** 2).sum(axis=-1))]
         theta = rng.uniform(-np.pi, np.pi)
-        return self.load(walls, pos, theta, goal, perturbation), {}
+        obstacles = None
+        if c.obstacle_counts:  # by env.obstacles' rules, from this twin's own random numbers
+            u = rng.random((c.obstacles.count, OBSTACLE_WORDS))
+            obstacles = place_obstacles_np(u, c, free, walls, self._cell, pos, goal)
+        return self.load(walls, pos, theta, goal, perturbation, obstacles), {}
 
     def _draw_perturbation(self, rng: np.random.Generator) -> dict[str, Any] | None:
         """This episode's randomisation draws (None when the config is not randomised)."""
@@ -246,6 +372,22 @@ class QuickNavNumpyEnv(gym.Env):
             "robot_radius": f32(rng.uniform(*radius)),
             "past_commands": np.zeros((LATENCY_MAX_STEPS, 2), f32),
         }
+
+    def _obstacles(self, given: Any) -> dict[str, np.ndarray] | None:
+        """Obstacles as the twin keeps them, from a dict or the JAX env's ``Obstacles``."""
+        c = self.config
+        if not c.obstacle_counts:
+            if given is not None:
+                raise ValueError("obstacles given, but this env has none (EnvConfig.obstacles)")
+            return None
+        n = c.obstacles.count
+        if given is None:
+            return {"pos": np.full((n, 2), OBSTACLE_ABSENT, f32), "vel": np.zeros((n, 2), f32),
+                    "radius": np.zeros(n, f32)}  # fmt: skip
+        get = given.get if isinstance(given, dict) else lambda k: getattr(given, k)
+        return {"pos": np.array(get("pos"), f32).reshape(n, 2),
+                "vel": np.array(get("vel"), f32).reshape(n, 2),
+                "radius": np.array(get("radius"), f32).reshape(n)}  # fmt: skip
 
     def _perturbation(self, given: Any) -> dict[str, Any] | None:
         """A perturbation as the twin keeps it, from a dict or the JAX env's ``Perturbation``."""
@@ -272,11 +414,14 @@ class QuickNavNumpyEnv(gym.Env):
                               else np.array(queue, f32).reshape(LATENCY_MAX_STEPS, 2)),
         }  # fmt: skip
 
-    def load(self, walls, pos, theta, goal, perturbation: Any = None) -> np.ndarray:
+    def load(self, walls, pos, theta, goal, perturbation: Any = None, obstacles: Any = None
+             ) -> np.ndarray:  # fmt: skip
         """Start an episode in a given room, pose and goal; returns the first observation.
 
         A randomised twin takes the episode's ``perturbation`` too: a dict or the JAX env's
-        ``state.perturbation`` (default: one that changes nothing)."""
+        ``state.perturbation`` (default: one that changes nothing); a twin with obstacles takes the
+        episode's ``obstacles`` (a dict of pos, vel, radius or the JAX env's ``state.obstacles``;
+        default: none present)."""
         walls = np.asarray(walls, dtype=bool)
         g = self.config.grid_size
         if walls.shape != (g, g):
@@ -298,7 +443,11 @@ class QuickNavNumpyEnv(gym.Env):
             "collisions": 0,
             "time": 0,
             "perturbation": self._perturbation(perturbation),
+            "obstacles": self._obstacles(obstacles),
         }
+        if self.config.observe_plan:  # the episode's global plan on the known map
+            goal_rc = np.clip(np.floor(self._state["goal"][::-1] / self._cell).astype(np.int64), 0, g - 1)
+            self._state["plan"] = cell_field_np(self._usable(), goal_rc)
         self._cast()
         return self._obs()
 
@@ -339,6 +488,13 @@ class QuickNavNumpyEnv(gym.Env):
                 pos = pos0
         else:
             pos = full
+        obstacles = s["obstacles"]
+        if obstacles is not None:  # env.obstacles: no move into a disc, then the people walk
+            radius = c.robot_radius if p is None else float(p["robot_radius"])
+            gap = np.linalg.norm(obstacles["pos"] - pos[None, :], axis=-1)
+            if np.any((obstacles["radius"] > 0) & (gap < f32(radius) + obstacles["radius"])):
+                pos, collided = pos0, True
+            self._walk(obstacles, pos, radius)
 
         g = c.grid_size
         cell = np.clip(np.floor(pos[::-1] / self._cell).astype(np.int64), 0, g - 1)
@@ -352,7 +508,12 @@ class QuickNavNumpyEnv(gym.Env):
         dist = f32(np.linalg.norm(s["goal"] - pos))
         goal_reached = bool(dist <= f32(c.goal_radius))
         r = c.reward
-        if r.progress == "linear":
+        if r.progress == "path":  # the planned path's decrease (env.reward)
+            path_prev = self._path_left(pos0)
+            path = path_prev if np.all(pos == pos0) else self._path_left(pos)
+            after = f32(0.0) if goal_reached else path
+            progress = (path_prev - after) / (vmax * dt)
+        elif r.progress == "linear":
             progress = (dist_prev - dist) / (vmax * dt)
         elif r.progress == "potential":
             after = f32(0.0) if goal_reached else dist
@@ -366,11 +527,13 @@ class QuickNavNumpyEnv(gym.Env):
             "progress": f32(progress) * f32(r.progress_reward),
             "goal": f32(goal_reached) * f32(r.goal_reward),
             "exploration": f32(new_cell) * f32(r.exploration_reward),
+            "proximity": -f32(np.clip(f32(1.0) - self._clearance(pos) / f32(r.proximity_m), 0.0, 1.0))
+            * f32(r.proximity_penalty),
         }
         total = f32(
             terms["step"] + terms["collision"] + terms["cycle"] + terms["progress"] + terms["goal"]
         )
-        reward = f32(total + terms["exploration"])
+        reward = f32(total + terms["exploration"] + terms["proximity"])
         s.update(
             pos=pos,
             theta=theta,
@@ -379,7 +542,7 @@ class QuickNavNumpyEnv(gym.Env):
             time=s["time"] + 1,
         )
         self._cast()
-        terminated = goal_reached
+        terminated = goal_reached or (collided and c.end_on_collision)
         truncated = (s["time"] >= c.max_steps) and not terminated
         info = {
             "goal_reached": goal_reached,
@@ -406,22 +569,83 @@ class QuickNavNumpyEnv(gym.Env):
         radius = self.config.robot_radius if p is None else p["robot_radius"]
         return disc_overlaps_wall_np(pos, self._state["walls"], self._cell, radius)
 
+    def _walk(self, obstacles: dict[str, np.ndarray], robot: np.ndarray, robot_radius: float) -> None:
+        """``env.obstacles.move``: each person walks on, or turns back (and stays) where it would
+        overlap a wall or the robot."""
+        dt = f32(self.config.dt)
+        for i in range(obstacles["radius"].size):
+            v = obstacles["vel"][i]
+            if not np.any(v != 0):
+                continue
+            nxt = (obstacles["pos"][i] + v * dt).astype(f32)
+            rad = float(obstacles["radius"][i])
+            blocked = disc_overlaps_wall_np(nxt, self._state["walls"], self._cell, rad) or bool(
+                np.linalg.norm(nxt - robot) < f32(rad) + f32(robot_radius))  # fmt: skip
+            if blocked:
+                obstacles["vel"][i] = -v
+            else:
+                obstacles["pos"][i] = nxt
+
     def _cast(self) -> None:
         s, c = self._state, self.config
         s["lidar_ranges"], s["lidar_hits"] = cast_lidar_np(
             s["pos"], s["theta"], s["goal"], s["walls"], self._angles, self._cell,
             c.lidar_max_range, c.goal_radius,
         )  # fmt: skip
+        if s["obstacles"] is not None:  # the discs the map does not show, seen as walls
+            ca = np.cos(self._angles.astype(np.float64)).astype(f32)
+            sa = np.sin(self._angles.astype(np.float64)).astype(f32)
+            ct, st = f32(np.cos(f32(s["theta"]))), f32(np.sin(f32(s["theta"])))
+            dx, dy = (ct * ca - st * sa).astype(f32), (st * ca + ct * sa).astype(f32)
+            t_obs = obstacle_rays_np(s["pos"], dx, dy, s["obstacles"])
+            nearest = np.where(s["lidar_hits"] == HIT_NONE, _BIG, s["lidar_ranges"])
+            closer = (t_obs < nearest) & (t_obs <= f32(c.lidar_max_range))
+            s["lidar_ranges"] = np.where(closer, t_obs, s["lidar_ranges"]).astype(f32)
+            s["lidar_hits"] = np.where(closer, HIT_WALL, s["lidar_hits"]).astype(np.int32)
         if s["perturbation"] is not None:
             s["lidar_ranges"], s["lidar_hits"] = perturb_scan_np(
                 s["perturbation"], s["time"], s["lidar_ranges"], s["lidar_hits"], c.lidar_max_range
             )
+
+    def _clearance(self, pos: np.ndarray) -> np.float32:
+        """Metres from the robot's edge to the nearest wall (of the 3x3 cells around it) or obstacle."""
+        s, g, cell = self._state, self.config.grid_size, self._cell
+        rc = np.floor(pos[::-1] / cell).astype(np.int64)
+        rows, cols = np.clip(rc[0] + np.array([-1, 0, 1]), 0, g - 1), np.clip(rc[1] + np.array([-1, 0, 1]), 0, g - 1)
+        y0, x0 = (rows.astype(f32) * cell).astype(f32), (cols.astype(f32) * cell).astype(f32)
+        gy = np.maximum(np.maximum(y0 - pos[1], pos[1] - (y0 + cell)), f32(0.0))
+        gx = np.maximum(np.maximum(x0 - pos[0], pos[0] - (x0 + cell)), f32(0.0))
+        dist = np.sqrt(gy[:, None] ** 2 + gx[None, :] ** 2).astype(f32)
+        near = f32(np.min(np.where(s["walls"][np.ix_(rows, cols)], dist, cell)))
+        ob = s["obstacles"]
+        if ob is not None and np.any(ob["radius"] > 0):
+            gaps = np.linalg.norm(ob["pos"] - pos[None, :], axis=-1).astype(f32) - ob["radius"]
+            near = min(near, f32(np.min(np.where(ob["radius"] > 0, gaps, _BIG))))
+        p = s["perturbation"]
+        radius = self.config.robot_radius if p is None else float(p["robot_radius"])
+        return f32(near - f32(radius))
+
+    def _path_left(self, pos: np.ndarray) -> np.float32:
+        """``env.plan.path_length_from`` on the plan at cell resolution: metres to the goal."""
+        s, g = self._state, self.config.grid_size
+        metres = (s["plan"] * self._cell).astype(f32)
+        rc = np.floor(pos[::-1] / self._cell).astype(np.int64)
+        rows = np.repeat(np.clip(rc[0] + np.array([-1, 0, 1]), 0, g - 1), 3)
+        cols = np.tile(np.clip(rc[1] + np.array([-1, 0, 1]), 0, g - 1), 3)
+        centres = ((np.stack([cols, rows], axis=-1).astype(f32) + f32(0.5)) * self._cell).astype(f32)
+        return f32(np.min(np.linalg.norm(centres - pos, axis=-1).astype(f32) + metres[rows, cols]))
+
+    def _usable(self) -> np.ndarray:
+        s = self._state
+        p = s["perturbation"]
+        radius = self.config.robot_radius if p is None else float(p["robot_radius"])
+        return disc_fits(s["walls"], float(self._cell), radius) if self._reach else ~s["walls"]
+
     def _obs(self) -> np.ndarray:
         s, c = self._state, self.config
         room = f32(c.room_size)
-        parts = [
-            s["pos"] / room,
-            [np.sin(s["theta"]), np.cos(s["theta"])],
+        parts = [s["pos"] / room, [np.sin(s["theta"]), np.cos(s["theta"])]] if c.observe_pose else []
+        parts += [
             s["lidar_ranges"] / f32(c.lidar_max_range),
             (s["lidar_hits"] == HIT_WALL).astype(f32),
             (s["lidar_hits"] == HIT_GOAL).astype(f32),
@@ -432,4 +656,10 @@ class QuickNavNumpyEnv(gym.Env):
             bearing = f32(np.arctan2(rel[1], rel[0]) - s["theta"])
             sin_b, cos_b = (np.sin(bearing), np.cos(bearing)) if dist > 0 else (0.0, 1.0)
             parts += [s["goal"] / room, [dist / room], [sin_b], [cos_b]]
+        if c.observe_plan:
+            usable = self._usable()
+            points = plan_waypoints_np(s["plan"], usable, s["cell"], s["goal"], self._cell,
+                                       c.plan_lookahead, c.plan_waypoints)  # fmt: skip
+            parts.append(plan_features_np(s["pos"], s["theta"], points, s["plan"], s["cell"],
+                                          self._cell, c.plan_lookahead))  # fmt: skip
         return np.concatenate([np.asarray(p, f32) for p in parts]).astype(f32)

@@ -156,3 +156,52 @@ def greedy_path(field: jax.Array, usable: jax.Array, start_node: tuple[int, int]
         step, (jnp.int32(start_node[0]), jnp.int32(start_node[1])), None, max_len
     )
     return nodes
+
+
+# --------------------------------------------------------------------------- the env's global plan
+def disc_fits(walls: jax.Array, cell, radius, reach: int) -> jax.Array:
+    """(g, g) bool: free cells whose centre holds the disc clear of every wall cell (all free cells
+    for a robot narrower than a cell, ``reach`` 0); ``clearance.disc_fits`` in JAX."""
+    fits = ~walls
+    if reach == 0:
+        return fits
+    for dy in range(-reach, reach + 1):
+        for dx in range(-reach, reach + 1):
+            gy, gx = max(abs(dy) - 0.5, 0.0), max(abs(dx) - 0.5, 0.0)  # cells to the neighbour
+            near = (gy * gy + gx * gx) * cell * cell < radius * radius
+            fits = fits & ~(near & _shift(walls, dy, dx, True))
+    return fits
+
+
+def cell_field(usable: jax.Array, goal_rc: jax.Array) -> jax.Array:
+    """(g, g) float32: the shortest 8-connected path (no corner cutting) from every usable cell to
+    the goal's cell, in cells (``INF``-sized where the goal cannot be reached)."""
+    seeds = jnp.full(usable.shape, INF, jnp.float32).at[goal_rc[0], goal_rc[1]].set(0.0)
+    return distance_field(usable, seeds, 1.0)
+
+
+def plan_waypoints(field: jax.Array, usable: jax.Array, rc: jax.Array, goal: jax.Array, cell,
+                   lookahead: int, count: int) -> jax.Array:  # fmt: skip
+    """(count, 2) x, y of the plan's waypoints: the cell reached after ``i * lookahead`` steps down
+    the field from the robot's cell ``rc`` (row, col), i = 1..count, its centre; the goal itself
+    once the path has reached the goal's cell."""
+    nodes = greedy_path(field, usable, (rc[0], rc[1]), lookahead * count)  # (L*count, 2) row, col
+    picked = nodes[lookahead - 1 :: lookahead]  # (count, 2)
+    centres = (picked[:, ::-1].astype(jnp.float32) + 0.5) * cell
+    at_goal = field[picked[:, 0], picked[:, 1]] <= 0.0
+    return jnp.where(at_goal[:, None], goal[None, :], centres)
+
+
+def plan_features(pos, theta, waypoints, field, rc, cell, lookahead: int, path_scale: float) -> jax.Array:
+    """The plan's observation: per waypoint (forward, left) in the robot's frame divided by the
+    farthest it can lie, then tanh(path length left in metres / ``path_scale``)."""
+    count = waypoints.shape[0]
+    rel = waypoints - pos[None, :]
+    c, s = jnp.cos(theta), jnp.sin(theta)
+    fwd = c * rel[:, 0] + s * rel[:, 1]
+    left = c * rel[:, 1] - s * rel[:, 0]
+    # i * lookahead steps of at most sqrt(2) cells, and half a cell's diagonal at either end
+    reach = (jnp.arange(1, count + 1, dtype=jnp.float32) * lookahead + 1.0) * math.sqrt(2.0) * cell
+    points = jnp.clip(jnp.stack([fwd, left], axis=-1) / reach[:, None], -1.0, 1.0).reshape(-1)
+    left_m = jnp.minimum(field[rc[0], rc[1]], 1e6) * cell
+    return jnp.concatenate([points, jnp.tanh(left_m / path_scale)[None]]).astype(jnp.float32)

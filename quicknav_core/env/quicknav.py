@@ -12,9 +12,26 @@ from gymnax.environments import environment, spaces
 
 from quicknav_core.env.bits import num_words, pack_rows, pack_rows_np, read_bit, set_bit
 from quicknav_core.env.clearance import spawn_cells
-from quicknav_core.env.constants import HIT_GOAL, HIT_WALL, check_split, observation_bounds
-from quicknav_core.env.dynamics import drive, move_with_sliding, wheel_command
-from quicknav_core.env.lidar import cast_lidar_packed
+from quicknav_core.env.constants import (
+    BIG,
+    HIT_GOAL,
+    HIT_NONE,
+    HIT_WALL,
+    PATH_SCALE_M,
+    check_split,
+    observation_bounds,
+)
+from quicknav_core.env.dynamics import drive, move_with_sliding, wall_distance, wheel_command
+from quicknav_core.env.lidar import beam_directions, cast_lidar_packed
+from quicknav_core.env.obstacles import (
+    OBSTACLE_WORDS,
+    absent,
+    obstacle_numbers,
+    overlaps,
+    place,
+    ray_distances,
+)
+from quicknav_core.env.obstacles import move as move_obstacles
 from quicknav_core.env.perturb import (
     PERTURBATION_WORDS,
     apply_command,
@@ -23,10 +40,17 @@ from quicknav_core.env.perturb import (
     perturb_scan,
     randomize_numbers,
 )
+from quicknav_core.env.plan import (
+    cell_field,
+    disc_fits,
+    path_length_from,
+    plan_features,
+    plan_waypoints,
+)
 from quicknav_core.env.reward import reward_terms, total_reward
 from quicknav_core.env.rng import hash_key_bits, uniform_from_bits
 from quicknav_core.env.room_sources import RoomSource, free_cell_table, room_source
-from quicknav_core.env.types import EnvParams, EnvState, Perturbation
+from quicknav_core.env.types import EnvParams, EnvState, Obstacles, Perturbation
 from quicknav_core.markers import traced_values
 
 if TYPE_CHECKING:  # pragma: no cover - the env reads its config's fields, never imports the module
@@ -73,6 +97,7 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         self.observe_goal = config.observe_goal
         self.final_obs = config.final_obs
         self.randomized = config.randomize is not None
+        self.obstacle_count = config.obstacles.count if config.obstacle_counts else 0
         self.reach = config.collision_reach  # 0: narrower than a cell (the four-cell test)
 
     # Identity: jit treats the env as a static argument. Two envs are the same static argument
@@ -135,7 +160,10 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         # The dynamics are deterministic: the key only feeds the reset.
         moved, reward, info = self.transition(key, state, action, params)
         done = info["terminated"] | info["truncated"]
-        fresh = self.spawn(key, params)
+        # under vmap both sides are computed for every env: with observe_plan that is a plan per
+        # env per step (batched_step, which QuickNav's PPO and the Rollout server use, plans only
+        # for the envs that ended)
+        fresh = self.with_plan(self.spawn(key, params), params)
         kept = jax.tree.map(lambda a, b: jax.lax.select(done, a, b), fresh, moved)
         kept = self.with_lidar(kept, params)
         if self.final_obs:
@@ -152,8 +180,9 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         return self.get_obs(moved, params), moved, reward, done, info
 
     def reset_env(self, key: jax.Array, params: EnvParams) -> tuple[jax.Array, EnvState]:
-        """Pick a room from the bank, spawn robot and goal, cast the first lidar scan."""
-        state = self.with_lidar(self.spawn(key, params), params)
+        """Pick a room from the bank, spawn robot and goal, plan (``observe_plan``), cast the
+        first lidar scan."""
+        state = self.with_lidar(self.with_plan(self.spawn(key, params), params), params)
         return self.get_obs(state, params), state
 
     def load_state(
@@ -165,11 +194,13 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         params: EnvParams | None = None,
         room_index: int = -1,
         perturbation: Perturbation | None = None,
+        obstacles: Obstacles | None = None,
     ) -> tuple[jax.Array, EnvState]:
         """Start an episode in a given room, pose and goal (for tests, replays and the twin).
 
         A randomised env takes the episode's ``perturbation`` too (default: one that changes
-        nothing, ``perturb.at_rest``)."""
+        nothing, ``perturb.at_rest``); an env with obstacles its ``obstacles`` (default: none
+        present)."""
         if params is None:
             params = self.default_params
         if self.randomized and perturbation is None:
@@ -188,7 +219,13 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
             pos, theta, goal, pack_rows(walls.T), pack_rows(walls), jnp.int32(room_index), rc,
             perturbation,
         )  # fmt: skip
-        state = self.with_lidar(state, params)
+        if obstacles is not None:
+            if not self.obstacle_count:
+                raise ValueError("obstacles given, but this env has none (EnvConfig.obstacles)")
+            get = obstacles.get if isinstance(obstacles, dict) else lambda k: getattr(obstacles, k)
+            given = Obstacles(**{k: jnp.asarray(get(k), jnp.float32) for k in ("pos", "vel", "radius")})
+            state = state.replace(obstacles=given)
+        state = self.with_lidar(self.with_plan(state, params), params)
         return self.get_obs(state, params), state
 
     def get_obs(self, state: EnvState, params: EnvParams | None = None, key=None) -> jax.Array:
@@ -197,10 +234,8 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
             params = self.default_params
         room = jnp.asarray(params.room_size, jnp.float32)
         sin_t, cos_t = jnp.sin(state.theta), jnp.cos(state.theta)
-        parts = [
-            state.pos / room,
-            sin_t[None],
-            cos_t[None],
+        parts = [state.pos / room, sin_t[None], cos_t[None]] if self.config.observe_pose else []
+        parts += [
             state.lidar_ranges / params.lidar_max_range,
             (state.lidar_hits == HIT_WALL).astype(jnp.float32),
             (state.lidar_hits == HIT_GOAL).astype(jnp.float32),
@@ -214,6 +249,8 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
             left = (cos_t * rel[1] - sin_t * rel[0]) * inv
             fwd = jnp.where(dist > 0.0, fwd, 1.0)
             parts += [state.goal / room, (dist / room)[None], left[None], fwd[None]]
+        if self.config.observe_plan:
+            parts.append(self.plan_observation(state, params))
         return jnp.concatenate(parts).astype(jnp.float32)
 
     def is_terminal(self, state: EnvState, params: EnvParams) -> jax.Array:
@@ -252,13 +289,15 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         cell = params.room_size / g
         # One PRNG call for everything a reset draws (the reset runs every step under vmap); the
         # randomisation's words come after the plain env's, which stay what they were.
-        bits = hash_key_bits(key, 5 + k + (PERTURBATION_WORDS if self.randomized else 0))
+        p_words = PERTURBATION_WORDS if self.randomized else 0
+        bits = hash_key_bits(key, 5 + k + p_words + OBSTACLE_WORDS * self.obstacle_count)
         u = uniform_from_bits(bits[: 5 + k])
         u_room, u_start, jitter_u, u_head, u_goal = u[0], u[1], u[2:4], u[4], u[5:]
-        perturbation = draw(params.randomize, bits[5 + k :]) if self.randomized else None
+        perturbation = draw(params.randomize, bits[5 + k : 5 + k + p_words]) if self.randomized else None
         radius = params.robot_radius if perturbation is None else perturbation.robot_radius
         if params.pool_room is not None:
-            return self._spawn_from_pool(params, u_room, jitter_u, u_head, perturbation, radius)
+            state = self._spawn_from_pool(params, u_room, jitter_u, u_head, perturbation, radius)
+            return self.with_obstacles(state, params, bits[5 + k + p_words :])
         n_rooms = params.rooms.shape[0]
         room = jnp.minimum(jnp.floor(u_room * n_rooms).astype(jnp.int32), n_rooms - 1)
         n_free = params.num_free[room]
@@ -275,10 +314,24 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         cand_xy = (jnp.stack([cand % g, cand // g], axis=-1).astype(jnp.float32) + 0.5) * cell
         goal = cand_xy[jnp.argmax(jnp.sum((cand_xy - pos) ** 2, axis=-1))]
         theta = (2.0 * u_head - 1.0) * jnp.pi
-        return self._episode_start(
+        state = self._episode_start(
             pos, theta, goal, params.room_col_bits[room], params.room_row_bits[room], room, start_rc,
             perturbation,
         )  # fmt: skip
+        return self.with_obstacles(state, params, bits[5 + k + p_words :])
+
+    def with_obstacles(self, state: EnvState, params: EnvParams, bits: jax.Array) -> EnvState:
+        """State with its episode's obstacles placed from ``bits`` (``env.obstacles``; unchanged
+        without obstacles)."""
+        if not self.obstacle_count:
+            return state
+        c = self.config.obstacles
+        room = state.room_index
+        return state.replace(obstacles=place(
+            params.obstacles, bits, c.static, c.moving, params.free_cells[room],
+            params.num_free[room], state.row_bits, params.room_size / self.grid_size, state.pos,
+            state.goal,
+        ))  # fmt: skip
 
     def _spawn_from_pool(
         self, params: EnvParams, u_pick, jitter_u, u_head, perturbation, radius
@@ -322,6 +375,10 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
             lidar_hits=jnp.zeros((b,), jnp.int32),
             time=jnp.int32(0),
             perturbation=perturbation,
+            # planned by ``with_plan`` (a placeholder until then, so every state has one shape)
+            plan=jnp.zeros((g, g), jnp.float32) if self.config.observe_plan else None,
+            # placed by ``with_obstacles`` (none until then)
+            obstacles=absent(self.obstacle_count) if self.obstacle_count else None,
         )
 
     def transition(
@@ -340,6 +397,12 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
             state.theta, command, params.max_wheel_speed, params.wheel_base, params.dt
         )
         pos, collided = move_with_sliding(state.pos, delta, state.row_bits, cell, radius, self.reach)
+        obstacles = state.obstacles
+        if obstacles is not None:
+            # a move into an obstacle is not made (no sliding around a disc); then people walk
+            hit = overlaps(pos, radius, obstacles)
+            pos, collided = jnp.where(hit, state.pos, pos), collided | hit
+            obstacles = move_obstacles(obstacles, state.row_bits, cell, params.dt, pos, radius)
         rc = jnp.clip(jnp.floor(pos[::-1] / cell).astype(jnp.int32), 0, g - 1)
         entered = jnp.any(rc != state.cell)
         seen = read_bit(state.visited_bits[rc[0]], rc[1])
@@ -352,9 +415,23 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         # differently (fused multiply-adds), which would turn sign(0) into a penalty or a reward
         dist = jnp.where(jnp.all(pos == state.pos), dist_prev, jnp.linalg.norm(state.goal - pos))
         goal_reached = dist <= params.goal_radius
-        terms = reward_terms(collided, cycle_count, dist_prev, dist, goal_reached, params, new_cell)
+        path_prev = path = None
+        if self.config.observe_plan:  # the planned path left, before and after (env.plan)
+            metres = state.plan * cell
+            path_prev = path_length_from(metres, state.pos, params.room_size, 1)
+            path = jnp.where(jnp.all(pos == state.pos), path_prev,
+                             path_length_from(metres, pos, params.room_size, 1))  # fmt: skip
+        # how close the robot's edge came to a wall or an obstacle (the proximity term)
+        near = wall_distance(pos, state.row_bits, cell)
+        if obstacles is not None:
+            gaps = jnp.linalg.norm(obstacles.pos - pos[None, :], axis=-1) - obstacles.radius
+            near = jnp.minimum(near, jnp.min(jnp.where(obstacles.radius > 0.0, gaps, BIG)))
+        terms = reward_terms(collided, cycle_count, dist_prev, dist, goal_reached, params, new_cell,
+                             path_prev, path, near - radius)  # fmt: skip
         time = state.time + 1
         truncated = (time >= params.max_steps_in_episode) & ~goal_reached
+        if self.config.end_on_collision:
+            truncated = truncated & ~collided
         moved = state.replace(
             pos=pos,
             theta=theta,
@@ -364,9 +441,11 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
             collisions=state.collisions + collided.astype(jnp.int32),
             time=time,
             perturbation=perturbation,
+            obstacles=obstacles,
         )
+        ended = goal_reached | collided if self.config.end_on_collision else goal_reached
         info = {
-            "terminated": goal_reached,
+            "terminated": ended,
             "truncated": truncated,
             "goal_reached": goal_reached,
             "collision": collided,
@@ -389,11 +468,44 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
             params.lidar_max_range,
             params.goal_radius,
         )
+        if state.obstacles is not None:  # the discs the map does not show, seen as walls
+            dx, dy = beam_directions(state.theta, self.num_beams, self.config.lidar_fov_deg)
+            t_obs = ray_distances(state.pos, dx, dy, state.obstacles)
+            nearest = jnp.where(hits == HIT_NONE, BIG, ranges)
+            closer = (t_obs < nearest) & (t_obs <= params.lidar_max_range)
+            ranges = jnp.where(closer, t_obs, ranges).astype(jnp.float32)
+            hits = jnp.where(closer, HIT_WALL, hits)
         if state.perturbation is not None:
             ranges, hits = perturb_scan(
                 state.perturbation, state.time, ranges, hits, params.lidar_max_range
             )
         return state.replace(lidar_ranges=ranges, lidar_hits=hits)
+
+    # ------------------------------------------------------------------ the global plan
+    def _plan_usable(self, state: EnvState, params: EnvParams) -> jax.Array:
+        """(g, g) bool: the cells the disc's centre may pass on the known map."""
+        radius = params.robot_radius if state.perturbation is None else state.perturbation.robot_radius
+        return disc_fits(state.walls, params.room_size / self.grid_size, radius, self.reach)
+
+    def with_plan(self, state: EnvState, params: EnvParams) -> EnvState:
+        """State with the global plan of its episode (``observe_plan``; unchanged otherwise): the
+        shortest path length from every cell to the goal's cell on the room's known map."""
+        if not self.config.observe_plan:
+            return state
+        g = self.grid_size
+        goal_rc = jnp.clip(jnp.floor(state.goal[::-1] / (params.room_size / g)).astype(jnp.int32),
+                           0, g - 1)  # fmt: skip
+        return state.replace(plan=cell_field(self._plan_usable(state, params), goal_rc))
+
+    def plan_observation(self, state: EnvState, params: EnvParams) -> jax.Array:
+        """The plan's part of the observation (``env.plan.plan_features``)."""
+        c = self.config
+        cell = params.room_size / self.grid_size
+        usable = self._plan_usable(state, params)
+        points = plan_waypoints(state.plan, usable, state.cell, state.goal, cell, c.plan_lookahead,
+                                c.plan_waypoints)  # fmt: skip
+        return plan_features(state.pos, state.theta, points, state.plan, state.cell, cell,
+                             c.plan_lookahead, PATH_SCALE_M)  # fmt: skip
 
 
 def traced_numbers(config: EnvConfig) -> dict[str, Any]:
@@ -402,7 +514,7 @@ def traced_numbers(config: EnvConfig) -> dict[str, Any]:
     configs that differ only in these share compiled code and vmap side by side."""
     values = {**traced_values(config), **traced_values(config.reward)}
     numbers = {k: np.int32(v) if isinstance(v, int) else np.float32(v) for k, v in values.items()}
-    return {**numbers, "randomize": randomize_numbers(config)}
+    return {**numbers, "randomize": randomize_numbers(config), "obstacles": obstacle_numbers(config)}
 
 
 def make_params(config: EnvConfig, split: Split = "train", rooms: RoomSource | None = None

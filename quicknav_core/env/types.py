@@ -43,6 +43,26 @@ class RandomizeRanges:
 
 
 @struct.dataclass
+class Obstacles:
+    """One episode's obstacles the map does not show (``env.obstacles``). Shapes for one env,
+    N = obstacles.static + obstacles.moving; an absent one has radius 0."""
+
+    pos: jax.Array  # (N, 2) float32 centres, metres
+    vel: jax.Array  # (N, 2) float32 m/s (0 for static ones)
+    radius: jax.Array  # (N,) float32 metres (0: absent this episode)
+
+
+@struct.dataclass
+class ObstacleRanges:
+    """What obstacles are drawn from (traced: no recompile)."""
+
+    static_radius: jax.Array  # (2,) float32 [low, high] metres
+    moving_radius: jax.Array  # (2,) float32
+    speed: jax.Array  # (2,) float32 m/s
+    clearance: jax.Array  # () float32 metres kept from the start and the goal
+
+
+@struct.dataclass
 class EnvState:
     """Per-environment state. All fields are JAX arrays; shapes are for one (unbatched) env."""
 
@@ -61,6 +81,11 @@ class EnvState:
     time: jax.Array  # () int32 steps taken this episode
     # the episode's randomisation draws (None: the env is not randomised, ``EnvConfig.randomize``)
     perturbation: Perturbation | None = None
+    # the global plan (``EnvConfig.observe_plan``; None otherwise): (grid, grid) float32 shortest
+    # path length from every cell to the goal's cell, in cells, on the known map (env.plan)
+    plan: jax.Array | None = None
+    # obstacles the map does not show (``EnvConfig.obstacles``; None without them)
+    obstacles: Obstacles | None = None
 
     @property
     def walls(self) -> jax.Array:
@@ -104,6 +129,8 @@ class EnvParams:
     exploration_reward: jax.Array | float = 0.0
     progress_mode: jax.Array | int = 0  # 0: sign(d_prev - d), 1: scaled difference, 2: potential
     potential_gamma: jax.Array | float = 0.99  # γ of the potential-based shaping (mode 2)
+    proximity_penalty: jax.Array | float = 0.0  # per step at zero clearance, falling to 0 at proximity_m
+    proximity_m: jax.Array | float = 0.2  # clearance (m) from which the proximity term starts
     # Curriculum episode pool (``train.curriculum``; None: episodes are drawn by the spawn rule).
     # Sorted by the oracle's path length (shortest first); resets draw from the first
     # ``pool_count`` entries.
@@ -113,3 +140,5 @@ class EnvParams:
     pool_count: jax.Array | int = 0  # episodes of the pool in use (the curriculum's level)
     # Sensor and actuator randomisation (``env.perturb``; None: the env is not randomised)
     randomize: RandomizeRanges | None = None
+    # Obstacles the map does not show (``env.obstacles``; None: none)
+    obstacles: ObstacleRanges | None = None

@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
+from quicknav_core.env.batch import batched_step
 from quicknav_core.networks import PolicyOutput, gaussian_entropy, gaussian_log_prob
 from quicknav_core.train.stats import EpisodeStats
 
@@ -147,7 +148,15 @@ class RecurrentPPO:
     def collect(self, state: RecurrentPPOState) -> tuple[RecurrentPPOState, Trajectory, Any]:
         """Roll out ``num_steps`` steps of every env; returns the rollout's initial carry too."""
         carry0 = state.carry
-        vstep = jax.vmap(self.env.step, in_axes=(0, 0, 0, None))
+        if self.env.config.observe_plan:
+            # plans only for the envs whose episode ended (vmap(env.step) would plan for every
+            # env every step); the same transitions, see env.batch.batched_step
+            def vstep(keys, env_state, action, params):
+                obs, env_state, reward, info, _ = batched_step(self.env, keys, env_state, action,
+                                                               params)  # fmt: skip
+                return obs, env_state, reward, info["terminated"] | info["truncated"], info
+        else:
+            vstep = jax.vmap(self.env.step, in_axes=(0, 0, 0, None))
 
         def step(s: RecurrentPPOState, _):
             key, k_act, k_env = jax.random.split(s.key, 3)

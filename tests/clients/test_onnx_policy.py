@@ -30,7 +30,10 @@ FAR = np.array([1e6, 1e6], np.float32)  # a goal no beam meets: the scan a real 
 def manifest_of(env: EnvConfig) -> dict:
     """The manifest fields the observer reads, as ``quicknav export`` writes them."""
     angles = [float(a) for a in beam_angles(env.lidar_beams, env.lidar_fov_deg)]
-    return {"env": env.model_dump(mode="json"), "observation": {"size": env.obs_dim},
+    from quicknav_core.export import observation_layout
+
+    return {"env": env.model_dump(mode="json"),
+            "observation": {"size": env.obs_dim, "layout": observation_layout(env)},
             "lidar": {"beam_angles_rad": angles, "fov_deg": env.lidar_fov_deg,
                       "max_range_m": env.lidar_max_range}}  # fmt: skip
 
@@ -85,6 +88,14 @@ def test_resample__nearest_return_in_each_beams_sector():
     assert np.isinf(resample(empty, angles, 360.0, 10.0)).all()
     # ranges at the policy's own beams pass through
     np.testing.assert_allclose(resample(np.array([1.0, 2.0, 3.0, 4.0]), angles, 360.0, 10.0), [1, 2, 3, 4])
+    # a 270-degree scanner (-135..135) leaves the rear beam of a 360-degree policy unseen: refused,
+    # never read as open space; a policy trained for 270 degrees takes the same scan
+    hokuyo = LaserScan(angle_min=math.radians(-135), angle_increment=math.radians(0.25),
+                       ranges=np.full(1081, 4.0), range_min=0.05, range_max=30.0)  # fmt: skip
+    with pytest.raises(ValueError, match=r"covers -135 to 135 degrees; 1 of the policy's 4 beams \(at 180"
+                                         r" degrees\).*trained for a 360-degree lidar.*lidar_fov_deg"):
+        resample(hokuyo, angles, 360.0, 10.0)
+    np.testing.assert_allclose(resample(hokuyo, beam_angles(4, 270.0), 270.0, 10.0), [4.0] * 4)
     with pytest.raises(ValueError, match="3 ranges given as an array; the policy has 4 beams"):
         resample(np.ones(3), angles, 360.0, 10.0)
     with pytest.raises(ValueError, match="needs angle_min, angle_increment and ranges"):

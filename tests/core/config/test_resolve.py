@@ -206,7 +206,9 @@ def test_traced_fields__are_exactly_what_batched_training_varies():
         lidar_max_range=5.0, goal_radius=0.25, max_steps=200,
         reward=RewardConfig(step_penalty=0.3, collision_penalty=1, cycle_penalty=2,
                             progress_reward=0.5, goal_reward=5, cycle_cap=3, exploration_reward=1,
-                            progress="linear", potential_gamma=0.9),
-        randomize={"beam_dropout": [0.0, 0.1]}))  # fmt: skip
-    assert all(changed[k] != numbers[k] for k in numbers if k != "randomize")
-    assert numbers["randomize"] is None and changed["randomize"] is not None
+                            progress="linear", potential_gamma=0.9,
+                            proximity_penalty=1.0, proximity_m=0.3),
+        randomize={"beam_dropout": [0.0, 0.1]}, obstacles={"static": 2}))  # fmt: skip
+    sections = ("randomize", "obstacles")  # their ranges, when the config has the section
+    assert all(changed[k] != numbers[k] for k in numbers if k not in sections)
+    assert all(numbers[k] is None and changed[k] is not None for k in sections)

@@ -1,0 +1,117 @@
+"""A policy's env laid onto one map: the grid follows the map at the policy's cell size, the step
+limit follows the map's longest shortest path, and the map's frame is kept for the robot.
+
+``quicknav eval RUN --map MAP`` evaluates a policy on a map with nothing but the map;
+``quicknav export RUN --map MAP`` ships the map's grid and frame with the policy for
+``quicknav_client.navigate.Navigator``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from quicknav_core.config import EnvConfig
+from quicknav_core.env.clearance import disc_fits
+from quicknav_core.env.maps import MapError, load_map, reachable_only, to_cells
+
+MAX_GRID = 128  # EnvConfig.grid_size's upper bound
+# the step limit: this many times the steps the longest shortest path takes at full speed
+STEP_SLACK = 2.0
+
+
+@dataclass(frozen=True)
+class MapFit:
+    """One map at one cell size."""
+
+    path: str
+    grid_size: int
+    cell_m: float
+    walls: np.ndarray  # (grid, grid) bool, the room the env drives (outer ring and islands wall)
+    origin: tuple[float, float]  # the map frame's (x, y) of the map's lower-left pixel corner
+    free_kept: float  # share of the map's free area the grid keeps free (0..1)
+    longest_path_m: float  # the longest shortest path between two cells the robot fits in
+    max_steps: int
+
+    @property
+    def room_size(self) -> float:
+        return self.grid_size * self.cell_m
+
+    @property
+    def grid_corner_in_map(self) -> tuple[float, float]:
+        """Where the grid's (0, 0) corner lies in the map frame: the map's lower-left corner sits
+        at the corner of cell (1, 1), inside the outer ring of wall."""
+        return self.origin[0] - self.cell_m, self.origin[1] - self.cell_m
+
+    def env_overrides(self, map_name: str) -> dict[str, Any]:
+        """What ``--set`` would change in a policy's env to drive this map."""
+        from quicknav_core.config.env import FloorplanConfig
+
+        return {"rooms": "maps", "maps": {"train": [map_name]}, "grid_size": self.grid_size,
+                "room_size": self.room_size, "max_steps": self.max_steps,
+                "floorplan": FloorplanConfig().model_dump(mode="json")}  # fmt: skip
+
+    def warnings(self) -> list[str]:
+        if self.free_kept < 0.9:
+            return [f"{self.path}: at {self.cell_m:g} m cells the grid keeps {self.free_kept:.0%} of"
+                    " the map's free space (narrow passages close, islands drop); a policy trained"
+                    " with smaller cells keeps more"]  # fmt: skip
+        return []
+
+
+def fit_map(env: EnvConfig, path: str | Path, read: dict[str, Any] | None = None) -> MapFit:
+    """``env``'s policy on the map at ``path`` (MapError when it cannot drive it)."""
+    m = load_map(path, **(read or {}))
+    cell = env.cell_size
+    width_m, height_m = m.size_m
+    side = max(math.ceil(width_m / cell - 1e-9), math.ceil(height_m / cell - 1e-9)) + 2
+    if side > MAX_GRID:
+        raise MapError(f"{m.path}: the map is {width_m:g} m x {height_m:g} m: at the policy's"
+                       f" {cell:g} m cells that is a grid of {side}, above the {MAX_GRID} an env may"
+                       " have; crop the map to the part the robot drives, or train a policy with"
+                       f" cells of at least {max(width_m, height_m) / (MAX_GRID - 2):.2f} m")  # fmt: skip
+    walls, _ = reachable_only(to_cells(m, cell, side), m.path)
+    free_area = float((~m.blocked).sum()) * m.resolution**2
+    kept = float((~walls).sum()) * cell * cell / free_area if free_area > 0 else 0.0
+    longest = longest_path_cells(walls, cell, env.spawn_radius) * cell
+    step_m = env.max_wheel_speed * env.dt
+    steps = max(env.max_steps, int(math.ceil(STEP_SLACK * longest / step_m / 50.0)) * 50)
+    return MapFit(path=str(path), grid_size=side, cell_m=cell, walls=walls, origin=m.origin,
+                  free_kept=min(kept, 1.0), longest_path_m=longest, max_steps=steps)  # fmt: skip
+
+
+def longest_path_cells(walls: np.ndarray, cell: float, radius: float) -> float:
+    """The longest shortest path (cells, 8-connected, no corner cutting) between two cells where
+    the disc fits: two sweeps of Dijkstra (SciPy), from any cell to the farthest and from there
+    (exact on trees and corridors, a lower bound elsewhere)."""
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import dijkstra
+
+    usable = disc_fits(walls, cell, radius)
+    g = usable.shape[0]
+    index = np.arange(g * g).reshape(g, g)
+    src, dst, cost = [], [], []
+    for dr, dc in ((1, 0), (0, 1), (1, 1), (1, -1)):
+        r, c = np.nonzero(usable)
+        rr, cc = r + dr, c + dc
+        inside = (rr >= 0) & (rr < g) & (cc >= 0) & (cc < g)
+        r, c, rr, cc = r[inside], c[inside], rr[inside], cc[inside]
+        ok = usable[rr, cc]
+        if dr and dc:
+            ok &= usable[rr, c] & usable[r, cc]
+        src.append(index[r[ok], c[ok]])
+        dst.append(index[rr[ok], cc[ok]])
+        cost.append(np.full(int(ok.sum()), math.sqrt(2.0) if dr and dc else 1.0))
+    graph = csr_matrix((np.concatenate(cost), (np.concatenate(src), np.concatenate(dst))),
+                       shape=(g * g, g * g))  # fmt: skip
+    start = int(index[usable][0])
+    far = 0.0
+    for _ in range(2):
+        d = dijkstra(graph, directed=False, indices=start)
+        d[~np.isfinite(d)] = -1.0
+        start, far = int(np.argmax(d)), float(d.max())
+    return far

@@ -1,0 +1,140 @@
+"""`quicknav_client.navigate`: the robot-side global plan (SciPy's Dijkstra) against the env's own
+(the NumPy twin's Bellman-Ford, itself held to the JAX env), the map frame, and the refusals."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from quicknav_client.navigate import GridPlanner, Navigator, disc_fits
+
+from quicknav_core.config import EnvConfig
+from quicknav_core.env import clearance
+from quicknav_core.env.map_fit import fit_map
+from quicknav_core.env.numpy_env import (
+    QuickNavNumpyEnv,
+    cell_field_np,
+    plan_features_np,
+    plan_waypoints_np,
+)
+
+OFFICE = "examples/maps/office.yaml"
+PLAN = dict(rooms="floorplan", grid_size=24, room_size=12.0, train_rooms=8, test_rooms=8,
+            lidar_beams=8, observe_plan=True, observe_pose=False, observe_goal=False,
+            plan_lookahead=2, plan_waypoints=3)  # fmt: skip
+
+
+@pytest.mark.parametrize("radius", [0.15, 0.4])
+def test_planner__inflation_field_and_features_are_the_twins(radius):
+    cfg = EnvConfig(**PLAN, robot_radius=radius)
+    twin = QuickNavNumpyEnv(cfg, split="test")
+    rng = np.random.default_rng(0)
+    compared = same = 0
+    for episode in range(6):
+        twin.reset(seed=episode)
+        s = twin.snapshot()
+        walls, cell = s["walls"], cfg.cell_size
+        planner = GridPlanner(walls, cell, radius, cfg.plan_lookahead, cfg.plan_waypoints)
+        usable = clearance.disc_fits(walls, cell, radius)
+        np.testing.assert_array_equal(planner.usable, usable)
+        field = planner.plan(s["goal"])
+        goal_rc = tuple(np.floor(np.asarray(s["goal"])[::-1] / cell).astype(int))
+        ref = cell_field_np(usable, goal_rc)
+        reached = ref < 1e8
+        np.testing.assert_allclose(field[reached], ref[reached], rtol=1e-5)
+        assert (field[~reached] >= 1e8).all()
+        # the observation's plan part at random poses in cells the disc fits
+        rows, cols = np.nonzero(usable & reached)
+        for k in rng.choice(rows.size, 40):
+            pos = (np.array([cols[k], rows[k]]) + rng.uniform(0.2, 0.8, 2)) * cell
+            theta = rng.uniform(-math.pi, math.pi)
+            rc = (rows[k], cols[k])
+            points = plan_waypoints_np(ref, usable, rc, s["goal"], cell, cfg.plan_lookahead,
+                                       cfg.plan_waypoints)  # fmt: skip
+            want = plan_features_np(pos.astype(np.float32), np.float32(theta), points, ref, rc, cell,
+                                    cfg.plan_lookahead)  # fmt: skip
+            got = planner.features((pos[0], pos[1], theta))
+            compared += 1
+            # equal-length paths: the two may descend different ones (rounding of the lengths)
+            same += bool(np.allclose(got, want, atol=1e-5))
+            assert got[-1] == pytest.approx(want[-1], abs=1e-5)  # the path left always agrees
+    assert same >= 0.95 * compared, f"{same} of {compared} plan observations agree"
+
+
+def test_disc_fits__is_the_envs_inflation():
+    rng = np.random.default_rng(1)
+    walls = rng.random((20, 20)) < 0.2
+    for radius in (0.1, 0.3, 0.55, 1.2):
+        np.testing.assert_array_equal(disc_fits(walls, 0.5, radius), clearance.disc_fits(walls, 0.5, radius))
+
+
+class StandIn:
+    """The OnnxPolicy surface a Navigator uses, answering with its observation's length."""
+
+    def __init__(self, env: EnvConfig):
+        from quicknav_client.policy import Observer
+
+        from quicknav_core.env.constants import beam_angles
+        from quicknav_core.export import observation_layout
+
+        self.manifest = {"env": env.model_dump(mode="json"),
+                         "observation": {"size": env.obs_dim, "layout": observation_layout(env)},
+                         "lidar": {"beam_angles_rad": [float(a) for a in beam_angles(env.lidar_beams, 360.0)],
+                                   "fov_deg": 360.0, "max_range_m": env.lidar_max_range}}  # fmt: skip
+        self.observer = Observer(self.manifest)
+        self.resets = 0
+
+    def reset(self):
+        self.resets += 1
+
+    def observation(self, scan, pose, goal=None, plan=None):
+        return self.observer(scan, pose, goal, plan)
+
+    def act_on(self, obs):
+        return float(obs.size), 0.0
+
+
+def test_navigator__map_frame_poses_and_the_refusals():
+    env = EnvConfig(**{**PLAN, "lidar_beams": 16})
+    fit = fit_map(env, OFFICE)
+    frame = {"cell_m": fit.cell_m, "grid_corner_in_map": list(fit.grid_corner_in_map)}
+    nav = Navigator(StandIn(env), fit.walls, frame)
+    ox, oy = fit.grid_corner_in_map
+    free_r, free_c = np.nonzero(nav.planner.usable)
+    start = ((free_c[0] + 0.5) * fit.cell_m + ox, (free_r[0] + 0.5) * fit.cell_m + oy)
+    goal = ((free_c[-1] + 0.5) * fit.cell_m + ox, (free_r[-1] + 0.5) * fit.cell_m + oy)
+    with pytest.raises(ValueError, match="no goal: call set_goal"):
+        nav.act(np.full(16, 3.0), (*start, 0.0))
+    nav.set_goal(goal)
+    assert nav.policy.resets == 1
+    left, _ = nav.act(np.full(16, 3.0), (*start, 0.0))
+    assert left == env.obs_dim
+    # the plan seen from the map frame is the planner's in the grid frame
+    obs = nav.observation(np.full(16, 3.0), (*start, 0.3))
+    grid_pose = (start[0] - ox, start[1] - oy, 0.3)
+    np.testing.assert_allclose(obs[-(2 * env.plan_waypoints + 1):], nav.planner.features(grid_pose))
+    assert nav.planner.path_length_m(*grid_pose[:2]) > 5.0
+    with pytest.raises(ValueError, match=r"lies outside the map's grid"):
+        nav.act(np.full(16, 3.0), (ox - 3.0, oy, 0.0))
+    wall_r, wall_c = np.nonzero(fit.walls[1:-1, 1:-1])
+    in_wall = ((wall_c[0] + 1.5) * fit.cell_m + ox, (wall_r[0] + 1.5) * fit.cell_m + oy)
+    with pytest.raises(ValueError, match="lies in a wall cell of the map"):
+        nav.act(np.full(16, 3.0), (*in_wall, 0.0))
+    with pytest.raises(ValueError, match="the robot does not fit there"):
+        nav.set_goal(in_wall)
+
+
+def test_map_fit__grid_step_limit_and_frame_follow_the_map():
+    env = EnvConfig(**PLAN)
+    fit = fit_map(env, OFFICE)
+    assert fit.cell_m == env.cell_size == 0.5
+    assert fit.grid_corner_in_map == (fit.origin[0] - 0.5, fit.origin[1] - 0.5)
+    # the step limit covers the longest shortest path twice over at full speed
+    assert fit.max_steps >= 2 * fit.longest_path_m / (env.max_wheel_speed * env.dt)
+    again = EnvConfig.model_validate({**env.model_dump(), **fit.env_overrides(OFFICE)})
+    assert again.grid_size == fit.grid_size and again.room_size == pytest.approx(fit.room_size)
+    from quicknav_core.env.maps import MapError
+
+    with pytest.raises(MapError, match=r"a grid of \d+, above the 128 an env may have.*cells of at least"):
+        fit_map(EnvConfig(**{**PLAN, "room_size": 3.6}), OFFICE)  # 0.15 m cells
