@@ -41,9 +41,9 @@ def eval_request(
 ) -> dict[str, Any]:  # fmt: skip
     """The eval request the flags describe (what the SDK would send, with a job for the run)."""
     if (run is None) == (policy is None):
-        fail("give either a run folder or --policy random|oracle")
-    if policy is not None and policy not in ("random", "oracle"):
-        fail(f"--policy {policy!r}: allowed values are random and oracle")
+        fail("give either a run folder or --policy random|oracle|dwa")
+    if policy is not None and policy not in ("random", "oracle", "dwa"):
+        fail(f"--policy {policy!r}: allowed values are random, oracle and dwa")
     env = {**(read_json(config) if config else {}), **sets(overrides)}
     request: dict[str, Any] = {"episodes": episodes, "seed": seed, "split": split,
                                "deterministic": deterministic, "env": env}  # fmt: skip
@@ -81,7 +81,7 @@ def eval_cmd(
         typer.Argument(help="Run folder (or its checkpoint folder) from quicknav train."),
     ] = None,
     policy: Annotated[
-        str | None, typer.Option(help="Baseline instead of a run: random or oracle.")
+        str | None, typer.Option(help="Baseline instead of a run: random, oracle (the plan, pure pursuit) or dwa (the plan, a dynamic window on the lidar).")
     ] = None,
     episodes: Annotated[
         int, typer.Option(min=1, max=100_000, help="Episodes (fixed seeds).")

@@ -216,7 +216,7 @@ def jobs_submit(
         str | None, typer.Option("--job", help="eval: the train job whose checkpoint to evaluate.")
     ] = None,
     policy: Annotated[
-        str | None, typer.Option(help="eval: a baseline instead of a job, random or oracle.")
+        str | None, typer.Option(help="eval: a baseline instead of a job, random, oracle or dwa.")
     ] = None,
     episodes: Annotated[int, typer.Option(min=1, help="eval: episodes.")] = 100,
     seed: Annotated[int, typer.Option(min=0, help="eval: episode seed.")] = 0,

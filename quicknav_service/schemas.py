@@ -45,7 +45,7 @@ class EvalJobCreate(EvalFields):
     @model_validator(mode="after")
     def _one(self) -> EvalJobCreate:
         if (self.job_id is None) == (self.policy is None):
-            raise ValueError("give exactly one of 'job_id' (a train job) or 'policy' (random or oracle)")
+            raise ValueError("give exactly one of 'job_id' (a train job) or 'policy' (random, oracle or dwa)")
         return self
 
     def as_request(self, job_id: str | None) -> dict[str, Any]:

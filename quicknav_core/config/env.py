@@ -231,6 +231,10 @@ class FloorplanConfig(StrictModel):
         description="rooms up to this side may stay uncut (the chance grows as they shrink), cells",
     )  # fmt: skip
     door_width: int = Field(1, ge=1, le=16, description="door width, cells")
+    door_width_max: int | None = Field(
+        None, ge=1, le=16, description="doors from door_width up to this many cells wide, mixed in"
+        " each plan (None: every door door_width wide)",
+    )  # fmt: skip
     corridor_width: int = Field(
         1, ge=0, le=16, description="width of the corridor made by the first cut, cells (0: a wall)"
     )
@@ -244,6 +248,9 @@ class FloorplanConfig(StrictModel):
         if self.max_room < self.min_room:
             raise ValueError(f"max_room={self.max_room} < min_room={self.min_room}; allowed range"
                              f" max_room >= min_room")  # fmt: skip
+        if self.door_width_max is not None and self.door_width_max < self.door_width:
+            raise ValueError(f"door_width_max={self.door_width_max} < door_width={self.door_width};"
+                             " allowed range door_width_max >= door_width")  # fmt: skip
         return self
 
 

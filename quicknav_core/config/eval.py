@@ -9,7 +9,7 @@ from pydantic import Field, model_validator
 from quicknav_core.config.base import Split, StrictModel
 from quicknav_core.config.env import EnvConfig
 
-BASELINES = ("random", "oracle")
+BASELINES = ("random", "oracle", "dwa")
 # Episodes run side by side in one compiled call; a larger evaluation runs in batches of this many
 # (progress and cancellation between batches).
 EVAL_BATCH = 256
@@ -24,7 +24,7 @@ class EvalConfig(StrictModel):
     a stored eval job says everything about what was measured.
     """
 
-    policy: Literal["trained", "random", "oracle"] = Field(
+    policy: Literal["trained", "random", "oracle", "dwa"] = Field(
         "trained", description="'trained' (the checkpoint of source) or a baseline"
     )
     source: str | None = Field(

@@ -100,7 +100,7 @@ class EvalFields(StrictModel):
     """What every evaluation request holds besides the name of a trained policy: one model that
     the library's ``EvalRequest`` and the service's eval job body both extend."""
 
-    policy: Literal["random", "oracle"] | None = Field(None, description="a baseline policy")
+    policy: Literal["random", "oracle", "dwa"] | None = Field(None, description="a baseline policy")
     env: dict[str, Any] = Field(
         default_factory=dict,
         description="EnvConfig fields (dotted keys or sections) set on the policy's env: the "
@@ -176,7 +176,7 @@ class EvalRequest(EvalFields):
         if (self.source is None) == (self.policy is None):
             raise ValueError(
                 "give exactly one of 'job_id' (a train job; 'source' or 'run' for a run folder)"
-                " or 'policy' (random or oracle)"
+                " or 'policy' (random, oracle or dwa)"
             )
         return self
 

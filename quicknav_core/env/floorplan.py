@@ -8,7 +8,8 @@ A plan is built on the same ``(grid, grid)`` wall grid as a carved room (outer r
    it shrinks, so plans mix large and small rooms. The first cut across the longer side is a
    corridor instead of a wall when ``corridor_width > 0``: two wall lines with that many free
    cells between them (the hallway of an office floor).
-2. Doors join the regions: every run of ``door_width`` wall cells with a free cell of one region on
+2. Doors join the regions: every run of ``door_width`` wall cells (of each width from
+   ``door_width`` to ``door_width_max``, when set) with a free cell of one region on
    one side and of another region on the other side is a candidate; candidates are taken in a
    random order and one is opened whenever it joins two regions not yet connected (a random
    spanning tree of the rooms, so every free cell is reachable), and each further candidate
@@ -77,9 +78,9 @@ def _labels(walls: np.ndarray) -> np.ndarray:
 def _open_doors(walls: np.ndarray, fp: FloorplanConfig, rng: np.random.Generator) -> None:
     labels = _labels(walls)
     g = walls.shape[0]
-    width = fp.door_width
     candidates = []  # (cells of the door, region a, region b)
-    for vertical in (False, True):
+    widths = range(fp.door_width, (fp.door_width_max or fp.door_width) + 1)
+    for width, vertical in ((w, v) for w in widths for v in (False, True)):
         lab = labels.T if vertical else labels
         # a wall cell between two free cells left and right (rows of ``lab``): a door through it
         a, b = lab[:, :-2], lab[:, 2:]

@@ -1,7 +1,10 @@
-"""Scripted policies, the baselines every learned agent is compared with: random and the oracle.
+"""Scripted policies, the baselines every learned agent is compared with: random, the oracle and
+the dynamic window approach.
 
 The oracle follows the shortest collision-free path of the robot's disc (``planning``) with the
-robot's own differential drive; it is also what ``quicknav env demo`` drives by default.
+robot's own differential drive (pure pursuit, blind to what the map does not show); it is also
+what ``quicknav env demo`` drives by default. ``dwa`` follows the same plan with a classic local
+planner that avoids what its lidar sees (``dwa``).
 """
 
 from __future__ import annotations
@@ -12,7 +15,7 @@ from quicknav_core.config import EnvConfig
 from quicknav_core.eval.agents import Agent
 from quicknav_core.eval.planning import oracle_action, oracle_plan
 
-BASELINES = ("random", "oracle")
+BASELINES = ("random", "oracle", "dwa")
 
 
 class RandomAgent(Agent):
@@ -48,10 +51,36 @@ class OracleAgent(Agent):
         return plans, act(plans, states.pos, states.theta, states.goal)
 
 
+class DwaAgent(OracleAgent):
+    """The oracle's plan followed by the dynamic window approach on the lidar (``dwa``)."""
+
+    name = "dwa"
+
+    def __init__(self, env_config: EnvConfig):
+        super().__init__(env_config.room_size, env_config.goal_radius)
+        c = env_config
+        self.numbers = dict(beams=c.lidar_beams, fov_deg=c.lidar_fov_deg, room_size=c.room_size,
+                            goal_radius=c.goal_radius, radius=c.robot_radius,
+                            max_wheel_speed=c.max_wheel_speed, wheel_base=c.wheel_base, dt=c.dt,
+                            max_range=c.lidar_max_range)  # fmt: skip
+
+    def static_key(self):
+        return ("dwa", tuple(sorted(self.numbers.items())))
+
+    def act(self, plans, obs, states, start, key, deterministic, payload):
+        from quicknav_core.eval.dwa import dwa_action
+
+        act = jax.vmap(lambda pl, p, th, g, r, h: dwa_action(pl, p, th, g, r, h, **self.numbers))
+        return plans, act(plans, states.pos, states.theta, states.goal, states.lidar_ranges,
+                          states.lidar_hits)  # fmt: skip
+
+
 def baseline_agent(policy: str, env_config: EnvConfig) -> Agent:
-    """A built-in baseline: 'random' or 'oracle'."""
+    """A built-in baseline: 'random', 'oracle' or 'dwa'."""
     if policy == "random":
         return RandomAgent()
     if policy == "oracle":
         return OracleAgent(env_config.room_size, env_config.goal_radius)
+    if policy == "dwa":
+        return DwaAgent(env_config)
     raise ValueError(f"policy={policy!r}: allowed values are {', '.join(BASELINES)}")
