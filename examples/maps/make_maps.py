@@ -6,7 +6,8 @@
   per pixel, 254 free / 0 occupied / 205 unknown) of a 20 m x 12 m office floor: a 2 m corridor
   along its length, offices on both sides with 1 m doors, desks and cabinets, and unknown space
   around the building as a SLAM map has it.
-- ``warehouse.png`` (0.1 m per pixel, black = occupied): a 16 m x 16 m hall with shelf rows.
+- ``warehouse.png`` (0.1 m per pixel, black = occupied): a 16 m x 16 m hall with shelf rows;
+  ``warehouse.yaml`` is its map_server YAML.
 """
 
 from __future__ import annotations
@@ -80,7 +81,11 @@ def main() -> None:
         "negate: 0\noccupied_thresh: 0.65\nfree_thresh: 0.196\n"
     )
     Image.fromarray(warehouse()).save(HERE / "warehouse.png")
-    print("wrote office.yaml, office.pgm, warehouse.png in", HERE)
+    (HERE / "warehouse.yaml").write_text(
+        "image: warehouse.png\nmode: trinary\nresolution: 0.1\norigin: [0.0, 0.0, 0.0]\n"
+        "negate: 0\noccupied_thresh: 0.65\nfree_thresh: 0.196\n"
+    )
+    print("wrote office.yaml, office.pgm, warehouse.png, warehouse.yaml in", HERE)
 
 
 if __name__ == "__main__":

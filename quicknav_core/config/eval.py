@@ -13,6 +13,14 @@ BASELINES = ("random", "oracle", "dwa")
 # Episodes run side by side in one compiled call; a larger evaluation runs in batches of this many
 # (progress and cancellation between batches).
 EVAL_BATCH = 256
+# Planner nodes one mapped batch of reference/oracle planners holds (~100 MB of distance fields).
+PLAN_NODES_AT_ONCE = 2**21
+
+
+def plan_batch(grid_size: int, episodes: int, k: int = 5) -> int:
+    """How many episodes' planners run side by side (``jax.lax.map``'s batch): all of them on small
+    grids, fewer as the grid grows, so a planner's memory follows the batch, not the episodes."""
+    return max(1, min(episodes, PLAN_NODES_AT_ONCE // (grid_size * k) ** 2))
 
 
 class EvalConfig(StrictModel):

@@ -79,7 +79,7 @@ def fit_map(env: EnvConfig, path: str | Path, read: dict[str, Any] | None = None
     kept = float((~walls).sum()) * cell * cell / free_area if free_area > 0 else 0.0
     longest = longest_path_cells(walls, cell, env.spawn_radius) * cell
     step_m = env.max_wheel_speed * env.dt
-    steps = max(env.max_steps, int(math.ceil(STEP_SLACK * longest / step_m / 50.0)) * 50)
+    steps = max(env.max_steps, math.ceil(STEP_SLACK * longest / step_m / 50.0) * 50)
     return MapFit(path=str(path), grid_size=side, cell_m=cell, walls=walls, origin=m.origin,
                   free_kept=min(kept, 1.0), longest_path_m=longest, max_steps=steps)  # fmt: skip
 

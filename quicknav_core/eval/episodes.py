@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from quicknav_core.config import EnvConfig, EvalConfig
-from quicknav_core.config.eval import EVAL_BATCH
+from quicknav_core.config.eval import EVAL_BATCH, plan_batch
 from quicknav_core.env.plan import shortest_path_length
 from quicknav_core.eval.agents import Agent
 from quicknav_core.runtime import Runtime, runtime_or_new
@@ -64,12 +64,14 @@ def _episodes_program(env, agent: Agent, batch: int, gif: int, deterministic: bo
 
     def run(keys, act_keys, params, payload):
         obs, states = jax.vmap(env.reset, in_axes=(0, None))(keys, params)
-        ref = jax.vmap(
-            lambda rb, s, goal: shortest_path_length(
-                rb, s, goal, params.room_size, params.robot_radius, params.goal_radius,
+        # the planners a few episodes at a time: their fields are (grid * 5)^2 nodes each
+        ref = jax.lax.map(
+            lambda a: shortest_path_length(
+                a[0], a[1], a[2], params.room_size, params.robot_radius, params.goal_radius,
                 reach=env.reach,
-            )
-        )(states.row_bits, states.pos, states.goal)
+            ),
+            (states.row_bits, states.pos, states.goal), batch_size=plan_batch(env.grid_size, n),
+        )
         agent_state = agent.init(env, params, states, payload)
         start = jnp.ones((n,), bool)
         done = jnp.zeros((n,), bool)

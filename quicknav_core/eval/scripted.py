@@ -12,6 +12,7 @@ from __future__ import annotations
 import jax
 
 from quicknav_core.config import EnvConfig
+from quicknav_core.config.eval import plan_batch
 from quicknav_core.eval.agents import Agent
 from quicknav_core.eval.planning import oracle_action, oracle_plan
 
@@ -40,9 +41,10 @@ class OracleAgent(Agent):
         return ("oracle", self.room_size, self.goal_radius)
 
     def init(self, env, params, states, payload):
-        plan = jax.vmap(lambda rb, g: oracle_plan(rb, g, params.room_size, params.robot_radius,
-                                                  reach=env.reach))  # fmt: skip
-        return plan(states.row_bits, states.goal)
+        plan = lambda a: oracle_plan(a[0], a[1], params.room_size, params.robot_radius,  # noqa: E731
+                                     reach=env.reach)  # fmt: skip
+        n = states.pos.shape[0]  # a few episodes at a time: the fields are (grid * 5)^2 nodes each
+        return jax.lax.map(plan, (states.row_bits, states.goal), batch_size=plan_batch(env.grid_size, n))
 
     def act(self, plans, obs, states, start, key, deterministic, payload):
         act = jax.vmap(

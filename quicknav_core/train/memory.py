@@ -18,7 +18,7 @@ import math
 from dataclasses import dataclass
 
 from quicknav_core.config import EnvConfig, EvalConfig, PPOConfig, SweepConfig, TrainConfig
-from quicknav_core.config.eval import EVAL_BATCH
+from quicknav_core.config.eval import EVAL_BATCH, plan_batch
 
 MB = 2**20
 RUNTIME_BYTES = 900 * MB  # python, jax, xla, compiled programs: an evaluation (measured 840-900 MB)
@@ -140,11 +140,12 @@ def eval_memory(cfg: EvalConfig) -> Estimate:
     planner = nodes * (4 * 2 + 1) * 3  # distance fields and usable masks, plain and with margin
     kept_steps = steps * (2 * 4)  # every episode's positions
     gif = min(cfg.gif_episodes, cfg.episodes) * steps * (env.lidar_beams * 8 + 16)
-    per_episode = planner + env_state_bytes(env) * 2 + kept_steps
+    per_episode = env_state_bytes(env) * 2 + kept_steps
+    planners = plan_batch(env.grid_size, batch)  # side by side (``jax.lax.map``), not the batch
     parts = {
         "runtime": RUNTIME_BYTES,
         "room banks": 2 * bank_bytes(env, cfg.split),
-        "episode batch": int(TRANSIENT_FACTOR * batch * per_episode),
+        "episode batch": int(TRANSIENT_FACTOR * (batch * per_episode + planners * planner)),
         "trajectories": cfg.episodes * kept_steps * 2 + gif,
     }
     fields = {"room banks": "env.train_rooms", "episode batch": "env.grid_size",

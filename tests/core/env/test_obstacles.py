@@ -30,7 +30,7 @@ def test_obstacles__placed_in_open_cells_clear_of_start_and_goal(episodes):
     for i in range(32):
         walls = np.asarray(states.walls[i])
         pos, goal = np.asarray(states.pos[i]), np.asarray(states.goal[i])
-        ob = jax.tree.map(lambda x: np.asarray(x[i]), states.obstacles)
+        ob = jax.tree.map(lambda x, i=i: np.asarray(x[i]), states.obstacles)
         present = ob.radius > 0
         present_total += present.sum()
         for j in np.flatnonzero(present):
@@ -51,7 +51,7 @@ def test_obstacles__the_lidar_sees_them_as_walls(episodes):
     angles = np.deg2rad(np.arange(cfg.lidar_beams) * 360.0 / cfg.lidar_beams)
     seen_obstacle = 0
     for i in range(16):
-        s = jax.tree.map(lambda x: x[i], states)
+        s = jax.tree.map(lambda x, i=i: x[i], states)
         walls, pos, th = np.asarray(s.walls), np.asarray(s.pos), float(s.theta)
         ob = jax.tree.map(np.asarray, s.obstacles)
         for b, a in enumerate(angles):
@@ -96,7 +96,7 @@ def test_obstacles__the_twin_steps_the_same_episodes(episodes):
     rng = np.random.default_rng(2)
     collisions = 0
     for i in range(8):
-        s = jax.tree.map(lambda x: x[i], states)
+        s = jax.tree.map(lambda x, i=i: x[i], states)
         twin.load(np.asarray(s.walls), np.asarray(s.pos), float(s.theta), np.asarray(s.goal),
                   obstacles=s.obstacles)  # fmt: skip
         for t in range(80):

@@ -48,7 +48,7 @@ def test_plan__waypoints_lie_down_the_path_in_the_robots_frame(planned):
     plan_part = np.asarray(obs)[:, -(2 * n + 1):]
     assert (np.abs(plan_part[:, :-1]) <= 1.0).all() and ((plan_part[:, -1] >= 0) & (plan_part[:, -1] < 1)).all()
     for i in range(8):
-        s = jax.tree.map(lambda x: x[i], states)
+        s = jax.tree.map(lambda x, i=i: x[i], states)
         field = np.asarray(s.plan)
         r, c = np.asarray(s.cell)
         # undo the features: the first waypoint back in the room frame
@@ -71,7 +71,7 @@ def test_plan__the_twin_plans_the_same_and_steps_the_same(planned):
     rng = np.random.default_rng(0)
     step = jax.jit(env.step_env)
     for i in range(6):
-        s = jax.tree.map(lambda x: x[i], states)
+        s = jax.tree.map(lambda x, i=i: x[i], states)
         o = twin.load(np.asarray(s.walls), np.asarray(s.pos), float(s.theta), np.asarray(s.goal))
         np.testing.assert_array_equal(twin.snapshot()["plan"], np.asarray(s.plan))
         for t in range(40):
@@ -126,7 +126,7 @@ def test_plan__path_progress_pays_for_the_path_not_the_straight_line():
 
 
 def test_plan__fields_that_need_the_plan_are_refused_without_it_and_rejax_is_refused_with_it():
-    with pytest.raises(ValueError, match="reward.progress='path'"):
+    with pytest.raises(ValueError, match=r"reward\.progress='path'"):
         EnvConfig(reward={"progress": "path"})
     with pytest.raises(ConfigError) as e:
         resolve_train({"preset": "paper-ppo", "overrides": {"env.observe_plan": True}})

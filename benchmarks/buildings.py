@@ -1,0 +1,120 @@
+"""Drive a building: the learned local planner against the planners that do not learn.
+
+Rows: the `building` preset's learned local planner, `paper-ppo` (the paper's agent, as a user
+would pick it), the oracle's plan followed by pure pursuit (`--policy oracle`: blind to what the
+map does not show) and the same plan followed by a dynamic window approach on the lidar
+(`--policy dwa`, as ROS 2 Navigation's DWB controller). Columns: held-out generated floor plans
+(the building preset's test bank), and the shipped maps the policy never trained on
+(`examples/maps`: the office, the warehouse), each with no unmapped obstacles, with static ones
+and with moving ones; a collision ends an episode, a failure, for every row (the rule the
+building preset trains under; the paper's env lets the robot slide on). Every figure is a `quicknav eval` of the same episodes (seed 0) in a fresh
+process, as a user runs it: success, SPL, collisions per episode, time to goal (successes).
+Trainings are reused when their run folder already holds the whole budget (`--retrain` trains
+again).
+
+    uv run python benchmarks/buildings.py [--episodes 100] [--runs runs/buildings]
+
+Prints a Markdown table and writes benchmarks/results/buildings.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != ROOT / "benchmarks"]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.cli_runs import run, trained  # noqa: E402
+from quicknav_core.bench.machine import machine_info, machine_line  # noqa: E402
+
+PRESETS = ("building", "paper-ppo")
+BASELINES = ("oracle", "dwa")
+# where: the flags that put a policy there (its own env otherwise)
+WHERE = {
+    "floor plans": [],
+    "office map": ["--map", "examples/maps/office.yaml"],
+    "warehouse map": ["--map", "examples/maps/warehouse.yaml"],
+}
+# the building preset's test bank, for the agents that did not train on it
+FLOORPLANS = ["--set", "rooms=floorplan", "--set", "grid_size=24", "--set", "room_size=12",
+              "--set", "floorplan.door_width=1", "--set", "floorplan.door_width_max=2",
+              "--set", "floorplan.corridor_width=2"]  # fmt: skip
+# one rule for every row: a collision ends the episode, a failure (the building preset trains so)
+RULES = ["--set", "end_on_collision=true"]
+OBSTACLES = {
+    "none": ["--set", "obstacles=null"],
+    "static": ["--set", 'obstacles={"static": 6, "moving": 0}'],
+    "moving": ["--set", 'obstacles={"static": 0, "moving": 3}'],
+}
+
+
+def evaluate(who: list[str], where: list[str], out: Path, episodes: int) -> dict:
+    seconds = run(["uv", "run", "quicknav", "eval", *who, "--episodes", str(episodes), *where,
+                   "--out", str(out)])  # fmt: skip
+    doc = json.loads((out / "eval.json").read_text())
+    m, env = doc["metrics"], doc["env_config"]
+    steps = m["steps_to_goal_successes"]["mean"]
+    return {"seconds": round(seconds, 1), "success_rate": m["success_rate"],
+            "success_ci95": m["success_ci95"], "spl": m["spl"],
+            "collisions_per_episode": m["collisions_per_episode"],
+            "time_to_goal_s": None if steps is None else round(steps * env["dt"], 1)}  # fmt: skip
+
+
+def cell(r: dict) -> str:
+    t = "-" if r["time_to_goal_s"] is None else f"{r['time_to_goal_s']:g} s"
+    return (f"{100 * r['success_rate']:.0f} %, SPL {r['spl']:.2f},"
+            f" {r['collisions_per_episode']:.2f} coll., {t}")  # fmt: skip
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--episodes", type=int, default=100)
+    ap.add_argument("--runs", type=Path, default=ROOT / "runs" / "buildings")
+    ap.add_argument("--retrain", action="store_true")
+    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "buildings.json")
+    args = ap.parse_args()
+    env_file = args.runs / "building-env.json"
+    rows: dict[str, dict] = {}
+    for preset in PRESETS:
+        run_dir = args.runs / preset
+        train_s = None
+        if args.retrain or not trained(run_dir, preset):
+            train_s = run(["uv", "run", "quicknav", "train", "--preset", preset, "--out", str(run_dir)])
+        if preset == "building":
+            env = json.loads((run_dir / "config.json").read_text())["env"]
+            env_file.write_text(json.dumps(env))
+        rows[preset] = {"train_s": train_s and round(train_s), "who": [str(run_dir)],
+                        "floor plans": [] if preset == "building" else FLOORPLANS}  # fmt: skip
+    for baseline in BASELINES:  # in the building preset's env: its lidar, robot and obstacles
+        rows[baseline] = {"train_s": None, "who": ["--policy", baseline, "--config", str(env_file)],
+                          "floor plans": []}  # fmt: skip
+    results: dict[str, dict] = {}
+    for name, row in rows.items():
+        results[name] = {"train_s": row["train_s"], "cells": {}}
+        for where, flags in WHERE.items():
+            base = row["floor plans"] if where == "floor plans" else flags
+            for obstacles, sets in OBSTACLES.items():
+                key = f"{where}, {obstacles}"
+                out = args.runs / "eval" / name / key.replace(", ", "-").replace(" ", "-")
+                r = evaluate(row["who"], [*base, *sets, *RULES], out, args.episodes)
+                results[name]["cells"][key] = r
+                print(f"{name} on {key}: {cell(r)} ({r['seconds']} s)", flush=True)
+    keys = [f"{w}, {o}" for w in WHERE for o in OBSTACLES]
+    lines = ["| policy | " + " | ".join(keys) + " |", "|---" * (len(keys) + 1) + "|"]
+    for name, r in results.items():
+        lines.append(f"| {name} | " + " | ".join(cell(r["cells"][k]) for k in keys) + " |")
+    lines += ["", f"{args.episodes} episodes per cell (seed 0); cells: success, SPL, collisions per"
+              f" episode, time to goal of the successes. Machine: {machine_line()}."]  # fmt: skip
+    text = "\n".join(lines)
+    print(text)
+    args.out.write_text(json.dumps({"machine": machine_info(), "episodes": args.episodes,
+                                    "results": results, "table": text}, indent=1))  # fmt: skip
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
