@@ -59,8 +59,8 @@ def eval_request(
 def map_overrides(request: dict[str, Any], path: Path) -> dict[str, Any]:
     """The env fields that put the request's policy (or baseline) on the map at ``path``."""
     from quicknav_core.config import resolve_env
-    from quicknav_core.env.map_fit import fit_map
     from quicknav_core.env.maps import MapError
+    from quicknav_core.eval.map_fit import fit_map
 
     base = run_env(request["run"]) if "run" in request else None
     try:

@@ -184,7 +184,7 @@ def export_run(run_dir: Path, out_dir: Path, provenance: dict[str, Any] | None =
     config, trainer, state, meta = load_run(run_dir, trainer, runtime)
     fit = None
     if map_path is not None:
-        from quicknav_core.env.map_fit import fit_map
+        from quicknav_core.eval.map_fit import fit_map
 
         fit = fit_map(config.env, map_path)  # before the model: a map that cannot be driven fails fast
     policy = trainer.policy(state)

@@ -11,13 +11,13 @@ from quicknav_client.navigate import GridPlanner, Navigator, disc_fits
 
 from quicknav_core.config import EnvConfig
 from quicknav_core.env import clearance
-from quicknav_core.env.map_fit import fit_map
 from quicknav_core.env.numpy_env import (
     QuickNavNumpyEnv,
     cell_field_np,
     plan_features_np,
     plan_waypoints_np,
 )
+from quicknav_core.eval.map_fit import fit_map
 
 OFFICE = "examples/maps/office.yaml"
 PLAN = dict(rooms="floorplan", grid_size=24, room_size=12.0, train_rooms=8, test_rooms=8,
