@@ -61,13 +61,19 @@ _PAPER_GTRXL = {
 # The building preset's env: what a robot in a real building meets, in generated floor plans only
 _BUILDING_ENV = {
     "rooms": "floorplan", "grid_size": 24, "room_size": 12.0, "train_rooms": 1024,
-    "test_rooms": 256, "lidar_beams": 32, "max_steps": 300,
+    "test_rooms": 256, "lidar_beams": 64, "max_steps": 300,
+    # doors of 1-2 cells (0.5-1 m) and 2-cell corridors: a map's 1 m door can land on a single
+    # 0.5 m cell, so the policy learns the narrow doors too
+    "floorplan": {"door_width": 1, "door_width_max": 2, "corridor_width": 2},
     # the robot's frame only: its pose and the goal's position in a room's frame do not carry to
     # another building; the plan's waypoints and the path left do
     "observe_pose": False, "observe_goal": False, "observe_plan": True,
     "plan_lookahead": 1, "plan_waypoints": 3,
     "obstacles": {"static": 6, "moving": 3},
-    "reward": {"progress": "path"},
+    # a collision ends the episode, as it ends a robot's run; the proximity penalty keeps it off
+    # walls and people before it touches them
+    "end_on_collision": True,
+    "reward": {"progress": "path", "collision_penalty": 3.0, "proximity_penalty": 1.0},
 }  # fmt: skip
 
 PRESETS: dict[str, dict[str, Any]] = {
@@ -109,8 +115,8 @@ PRESETS: dict[str, dict[str, Any]] = {
             },
             "network": {"kind": "mlp", "hidden_sizes": [128, 128]},
             "num_envs": 256,
-            "total_steps": 8_388_608,
-            "chunk_steps": 262_144,
+            "total_steps": 33_554_432,
+            "chunk_steps": 1_048_576,
         },
     },
     "paper-ppo": {
