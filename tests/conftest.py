@@ -46,6 +46,14 @@ def trained_demo_run():
 
 
 @pytest.fixture(scope="session")
+def trained_building_run():
+    """The building preset trained once per test run on a smaller budget (``tests/trained.py``)."""
+    from tests.trained import trained_building
+
+    return trained_building()
+
+
+@pytest.fixture(scope="session")
 def runtime():
     """The test session's Runtime: room banks and compiled programs shared by the tests that take it."""
     from quicknav_core.runtime import Runtime

@@ -68,6 +68,30 @@ def trained_demo() -> Path:
     return run
 
 
+# README's building journey trains `--preset building` for 33.5M steps (about 10 min on 2 cores); the
+# test run trains the same preset for this many (a policy that has learned to follow the plan, not
+# the finished one: the journey test asserts what this budget reaches)
+BUILDING_TEST_STEPS = 3_145_728
+
+
+def trained_building() -> Path:
+    """The building preset's run folder, trained once per test run for BUILDING_TEST_STEPS by
+    ``quicknav train --preset building --total-steps N`` (README's command with a smaller budget)."""
+    request = {"preset": "building", "overrides": {"total_steps": BUILDING_TEST_STEPS}}
+    config = resolve_train(request)
+    digest = hashlib.sha256(config.model_dump_json().encode()).hexdigest()[:12]
+    home = cache_root() / "trained" / f"building-{digest}"
+    run = home / "runs" / f"building-s{config.seed}"
+    with file_lock(home.with_suffix(".lock")):
+        if not (home / "done").exists():
+            shutil.rmtree(home, ignore_errors=True)
+            home.mkdir(parents=True)
+            _quicknav("train", "--preset", "building", "--total-steps", str(BUILDING_TEST_STEPS), cwd=home)
+            (home / "done").write_text(config.model_dump_json())
+    assert RunFolder(run).checkpoint() is not None
+    return run
+
+
 def seed_trained_job(store, artifacts_dir: Path, run: Path, request: dict | None = None) -> str:
     """A succeeded train job in ``store`` whose artifacts (in the local ``artifacts_dir``) are
     ``run``'s: the store's own submit, claim and finish, as a worker would leave it."""

@@ -121,6 +121,16 @@ def draw_robustness(rows: list[dict[str, Any]], path: Path, title: str = "") -> 
     return path
 
 
+def outcome(ep: Episodes, i: int, config: EnvConfig) -> str:
+    """How episode ``i`` ended, in words: reached, collided (when a collision ends an episode) or
+    timed out."""
+    if ep.success[i]:
+        return "reached"
+    if config.end_on_collision and ep.collisions[i] > 0 and ep.steps[i] < config.max_steps:
+        return "collided"
+    return "timed out"
+
+
 def draw_trajectories(ep: Episodes, config: EnvConfig, path: Path, title: str = "") -> Path:
     """3x3 grid of episodes with their trajectories (the paper's trajectory figures)."""
     import matplotlib
@@ -142,8 +152,7 @@ def draw_trajectories(ep: Episodes, config: EnvConfig, path: Path, title: str = 
         ax.plot(*traj[0], "o", color=PATH_COLOUR, ms=6)
         ax.add_patch(plt.Circle(ep.goals[i], config.goal_radius, color=GOAL_COLOUR, alpha=0.4))
         ax.plot(*ep.goals[i], "*", color=GOAL_COLOUR, ms=12)
-        outcome = "reached" if ep.success[i] else "timed out"
-        ax.set_title(f"episode {i + 1}: {outcome}, {ep.steps[i]} steps", fontsize=9)
+        ax.set_title(f"episode {i + 1}: {outcome(ep, i, config)}, {ep.steps[i]} steps", fontsize=9)
     fig.suptitle(f"{title}: held-out test rooms", fontsize=11)
     fig.tight_layout()
     fig.savefig(path, dpi=100)

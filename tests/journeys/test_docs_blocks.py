@@ -218,6 +218,6 @@ def test_docs__console_examples_print_what_the_page_shows(tmp_path):
                     + "\n".join(printed))  # fmt: skip
 
 
-@pytest.mark.parametrize("name", ["library", "service-http", "sdk", "grpc"])
+@pytest.mark.parametrize("name", ["library", "service-http", "sdk", "grpc", "building"])
 def test_docs__each_docs_journey_is_marked(name):
     assert journey(name), f"no block of the docs is marked `<!-- journey: {name} -->`"

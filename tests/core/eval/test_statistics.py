@@ -127,3 +127,17 @@ def test_evaluate__a_picture_that_fails_is_a_warning_and_the_numbers_stay(tmp_pa
     assert stored["warnings"] == result["warnings"]
     assert stored["metrics"]["episodes"] == 4 and (tmp_path / "replay.json").exists()
     assert not any((tmp_path / n).exists() for n in ("difficulty.png", "episodes.gif", "trajectories.png"))
+
+
+def test_pictures__an_episode_a_collision_ended_is_called_collided_not_timed_out():
+    from types import SimpleNamespace
+
+    from quicknav_core.config import EnvConfig
+    from quicknav_core.eval.pictures import outcome
+
+    ep = SimpleNamespace(success=np.array([True, False, False, False]),
+                         collisions=np.array([0, 1, 0, 2]), steps=np.array([40, 17, 300, 300]))  # fmt: skip
+    ends = EnvConfig(end_on_collision=True)
+    assert [outcome(ep, i, ends) for i in range(4)] == ["reached", "collided", "timed out", "timed out"]
+    slides = EnvConfig()  # the paper's env: a collision never ends an episode
+    assert [outcome(ep, i, slides) for i in range(4)] == ["reached", "timed out", "timed out", "timed out"]
