@@ -27,6 +27,7 @@ EnvSetOpt = Annotated[
     list[str] | None,
     typer.Option(
         "--set", help="Override an env field: --set grid_size=8 --set reward.goal_reward=20"
+        " (env.grid_size=8 works too)"
     ),
 ]
 PrintConfigOpt = Annotated[
@@ -60,6 +61,12 @@ def sets(items: list[str] | None) -> dict[str, Any]:
         return parse_assignments(items or [])
     except OverrideError as e:
         fail(f"--set {e}")
+
+
+def env_sets(items: list[str] | None) -> dict[str, Any]:
+    """An eval's ``--set`` items, env fields: ``grid_size=8`` and ``env.grid_size=8`` (the spelling
+    of train jobs and of what ``quicknav maps upload`` prints) mean the same field."""
+    return {key.removeprefix("env."): value for key, value in sets(items).items()}
 
 
 def read_json(path: Path, what: str = "--config") -> dict[str, Any]:

@@ -13,11 +13,11 @@ from quicknav_cli.common import (
     admitted,
     console,
     enable_compilation_cache,
+    env_sets,
     fail,
     print_config,
     read_json,
     resolved,
-    sets,
     warn,
 )
 
@@ -44,7 +44,7 @@ def eval_request(
         fail("give either a run folder or --policy random|oracle|dwa")
     if policy is not None and policy not in ("random", "oracle", "dwa"):
         fail(f"--policy {policy!r}: allowed values are random, oracle and dwa")
-    env = {**(read_json(config) if config else {}), **sets(overrides)}
+    env = {**(read_json(config) if config else {}), **env_sets(overrides)}
     request: dict[str, Any] = {"episodes": episodes, "seed": seed, "split": split,
                                "deterministic": deterministic, "env": env}  # fmt: skip
     if robustness:
@@ -184,13 +184,14 @@ def print_eval(result) -> None:
     t.add_row("success rate (95% CI)", f"{m['success_rate']:.1%} ({lo:.1%} - {hi:.1%})")
     t.add_row("SPL", f"{m['spl']:.3f}")
     s = m["steps_to_goal_successes"]
-    t.add_row("steps to goal (successes)", f"{s['mean']:.1f} ± {s['std']:.1f}")
+    # "a ± b": the mean over the episodes and their standard deviation (not an interval)
+    t.add_row("steps to goal (successes), mean ± std", f"{s['mean']:.1f} ± {s['std']:.1f}")
     s = m["steps_to_goal_failures_as_limit"]
-    t.add_row("steps (failures = limit)", f"{s['mean']:.1f} ± {s['std']:.1f}")
+    t.add_row("steps (failures = limit), mean ± std", f"{s['mean']:.1f} ± {s['std']:.1f}")
     t.add_row("steps lower bound (oracle path)", f"{m['steps_lower_bound']['mean']:.1f}")
-    t.add_row("return", f"{m['return']['mean']:.2f} ± {m['return']['std']:.2f}")
+    t.add_row("return, mean ± std", f"{m['return']['mean']:.2f} ± {m['return']['std']:.2f}")
     t.add_row("collisions per episode", f"{m['collisions_per_episode']:.2f}")
     t.add_row("timeout rate", f"{m['timeout_rate']:.1%}")
     p = m["path_length_successes"]
-    t.add_row("path length, m (successes)", f"{p['mean']:.2f} ± {p['std']:.2f}")
+    t.add_row("path length, m (successes), mean ± std", f"{p['mean']:.2f} ± {p['std']:.2f}")
     console.print(t)

@@ -71,6 +71,10 @@ def export_cmd(
     enable_compilation_cache()
     from quicknav_core.env.maps import MapError
 
+    # tracing to ONNX and checking the model against the JAX policy takes tens of seconds: say so
+    # first (a line, not a spinner, so that a log or a pipe shows it too)
+    console.print(f"exporting {run_dir} (tracing the policy to ONNX and checking it against JAX;"
+                  " about a minute)", highlight=False)  # fmt: skip
     try:
         doc = export_run(run_dir, out, map_path=on_map)
     except (FileNotFoundError, MapError) as e:

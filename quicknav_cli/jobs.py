@@ -10,7 +10,7 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
-from quicknav_cli.common import console, err_console, fail, read_json, sets, warn
+from quicknav_cli.common import console, env_sets, err_console, fail, read_json, sets, warn
 
 app = typer.Typer(
     help="Jobs on a QuickNav service (quicknav serve): submit, list, follow, cancel, download.",
@@ -286,7 +286,7 @@ def jobs_submit(
             )  # fmt: skip
         else:
             submitted = client.evaluate(job=job, policy=policy, episodes=episodes, seed=seed,
-                                        env=overrides, split=split, deterministic=deterministic,
+                                        env=env_sets(set_), split=split, deterministic=deterministic,
                                         robustness=robustness)  # fmt: skip
         console.print(f"submitted {submitted.kind} job {submitted.id} ({submitted.status})",
                       highlight=False)  # fmt: skip

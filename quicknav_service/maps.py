@@ -30,7 +30,11 @@ from quicknav_core.env.maps import (
     MAP_ID_PREFIX,
     YAML_SUFFIXES,
     MapError,
+    check_pixels,
+    header_size,
     load_map,
+    read_yaml_doc,
+    shown,
 )
 from quicknav_service.artifacts import ArtifactStore
 
@@ -88,17 +92,19 @@ def _canonical(files: list[UploadedFile], resolution: float | None, negate: bool
             raise MapUploadError(given[0], f"{given[0]} is for a plain image; {yamls[0].filename}"
                                  " names its own (edit the .yaml instead)")  # fmt: skip
         try:
-            doc = yaml.safe_load(yamls[0].data.decode())
-        except (yaml.YAMLError, UnicodeDecodeError) as e:
-            raise MapUploadError("files", f"{yamls[0].filename}: not valid YAML"
-                                 f" ({str(e).splitlines()[0]})") from None  # fmt: skip
+            doc = read_yaml_doc(yamls[0].data, yamls[0].filename)
+        except MapError as e:
+            raise MapUploadError("files", str(e)) from None
         if not isinstance(doc, dict) or "image" not in doc:
             raise MapUploadError("files", f"{yamls[0].filename}: a map_server YAML is a mapping"
                                  " with image, resolution and origin; 'image' is missing")  # fmt: skip
-        named = PurePosixPath(str(doc["image"]).replace("\\", "/")).name
+        if not isinstance(doc["image"], str):
+            raise MapUploadError("files", f"{yamls[0].filename}: field 'image' must be the image's"
+                                 f" file name; got {shown(doc['image'])}")  # fmt: skip
+        named = PurePosixPath(doc["image"].replace("\\", "/")).name
         if named != PurePosixPath(image.filename).name:
-            raise MapUploadError("files", f"{yamls[0].filename} names image {named!r}, but the"
-                                 f" image uploaded is {image.filename!r}: upload the image it names")  # fmt: skip
+            raise MapUploadError("files", f"{yamls[0].filename} names image {shown(named)}, but the"
+                                 f" image uploaded is {shown(image.filename)}: upload the image it names")  # fmt: skip
         doc["image"] = "map" + _suffix(image.filename)
     else:
         if resolution is None:
@@ -139,11 +145,21 @@ class MapLibrary:
                                                      free_thresh)  # fmt: skip
         image_name = next(f.filename for f in files if _suffix(f.filename) in IMAGE_SUFFIXES)
         try:
+            check_pixels(image_bytes[:256], image_name, self.max_pixels)
             with Image.open(io.BytesIO(image_bytes)) as im:
                 width, height = im.size
+                kind = im.format
+        except MapError:  # its header claims more pixels than this server takes: not decoded
+            width, height = header_size(image_bytes[:256]) or (0, 0)
+            kind = "header"
         except Exception:
             raise MapUploadError("files", f"{image_name}: not a PGM or PNG image (a map_server map"
                                  " is a binary P5 or text P2 PGM)") from None  # fmt: skip
+        named_kind = {".png": "PNG", ".pgm": "PPM"}[suffix]
+        if kind not in (named_kind, "header"):
+            actual = {"PNG": ".png", "PPM": ".pgm"}.get(kind or "", f"a {kind} image")
+            raise MapUploadError("files", f"{image_name}: its contents are {actual}, not {suffix}:"
+                                 " name the file by what it holds")  # fmt: skip
         if width * height > self.max_pixels:
             raise MapUploadError("files", f"{image_name}: {width} x {height} pixels is more than the"
                                  f" {self.max_pixels:,} this server takes (QUICKNAV_MAX_MAP_PIXELS);"

@@ -22,6 +22,7 @@ resolution given in the config (dark = occupied).
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,6 +33,59 @@ import numpy as np
 YAML_SUFFIXES = (".yaml", ".yml")
 IMAGE_SUFFIXES = (".pgm", ".png")
 MAX_MAP_PIXELS = 64_000_000  # 8000 x 8000: far above what an env grid can use
+MAX_RESOLUTION_M = 100.0  # metres per pixel: a map coarser than this is not a building's
+# a map_server YAML is a handful of short fields: anything far larger is refused unread
+MAX_YAML_BYTES = 64 * 1024
+MAX_YAML_DEPTH = 8
+MAX_YAML_SCALAR = 1024  # characters of one value (a file name, a number)
+
+
+def shown(value: Any, most: int = 80) -> str:
+    """``repr(value)`` cut to ``most`` characters: error messages never echo unbounded input."""
+    text = repr(value)
+    return text if len(text) <= most else text[: most - 3] + "..."
+
+
+def read_yaml_doc(text: str | bytes, where: str) -> Any:
+    """A map_server YAML parsed without what a map never has and an attacker would send: aliases
+    (their expansion can be exponential), nesting deeper than MAX_YAML_DEPTH, values longer than
+    MAX_YAML_SCALAR characters, more than MAX_YAML_BYTES. MapError names the file and the rule."""
+    import yaml
+
+    if isinstance(text, bytes):
+        if len(text) > MAX_YAML_BYTES:
+            raise MapError(f"{where}: {len(text):,} bytes; a map_server YAML is a few fields"
+                           f" (at most {MAX_YAML_BYTES:,} bytes here)")  # fmt: skip
+        try:
+            text = text.decode()
+        except UnicodeDecodeError:
+            raise MapError(f"{where}: not valid YAML (not UTF-8 text)") from None
+    if len(text) > MAX_YAML_BYTES:
+        raise MapError(f"{where}: {len(text):,} characters; a map_server YAML is a few fields"
+                       f" (at most {MAX_YAML_BYTES:,} here)")  # fmt: skip
+    try:
+        depth = 0
+        for event in yaml.parse(text, Loader=yaml.SafeLoader):
+            if isinstance(event, yaml.AliasEvent):
+                raise MapError(f"{where}: YAML aliases (*name) are not read here; a map_server"
+                               " YAML has none (write the values out)")  # fmt: skip
+            if isinstance(event, yaml.CollectionStartEvent):
+                depth += 1
+                if depth > MAX_YAML_DEPTH:
+                    raise MapError(f"{where}: nested more than {MAX_YAML_DEPTH} levels deep; a"
+                                   " map_server YAML is flat (origin: [x, y, yaw])")  # fmt: skip
+            elif isinstance(event, yaml.CollectionEndEvent):
+                depth -= 1
+            elif isinstance(event, yaml.ScalarEvent) and len(event.value) > MAX_YAML_SCALAR:
+                raise MapError(f"{where}: a value of {len(event.value):,} characters; allowed: up"
+                               f" to {MAX_YAML_SCALAR:,}")  # fmt: skip
+        return yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        raise MapError(f"{where}: not valid YAML ({shown(str(e).splitlines()[0], 200)})") from None
+    except ValueError as e:  # e.g. Python's limit on an integer's digits
+        if isinstance(e, MapError):
+            raise
+        raise MapError(f"{where}: not valid YAML ({shown(str(e), 200)})") from None
 MAP_ID_PREFIX = "map:"  # `map:<id>` names a map uploaded to a QuickNav service (POST /maps)
 
 def is_map_id(name: str) -> bool:
@@ -55,9 +109,7 @@ def map_parts(path: Path) -> list[Path]:
     """The files a map is read from (a YAML and its image)."""
     if path.suffix.lower() in YAML_SUFFIXES and path.is_file():
         try:
-            import yaml
-
-            doc = yaml.safe_load(path.read_text())
+            doc = read_yaml_doc(path.read_bytes(), str(path))
             return [path, path.parent / str(doc["image"])]
         except Exception:  # a broken YAML: loading it says what is wrong
             return [path]
@@ -92,6 +144,8 @@ def _read_image(path: Path) -> np.ndarray:
     if not path.is_file():
         raise MapError(f"{path}: no such file")
     try:
+        with path.open("rb") as f:
+            check_pixels(f.read(256), path, MAX_MAP_PIXELS)
         with Image.open(path) as im:
             if im.width * im.height > MAX_MAP_PIXELS:
                 raise MapError(f"{path}: {im.width} x {im.height} pixels is more than the"
@@ -101,11 +155,38 @@ def _read_image(path: Path) -> np.ndarray:
                 top = max(float(arr.max()), 1.0)
                 return np.clip(np.round(arr / (65535.0 if top > 255 else 255.0) * 255), 0, 255).astype(np.uint8)
             return np.asarray(im.convert("L"), dtype=np.uint8)
+    except MapError:
+        raise
     except UnidentifiedImageError:
         raise MapError(f"{path}: not a PGM or PNG image Pillow can read (a map_server map is a"
                        " binary P5 or text P2 PGM)") from None  # fmt: skip
-    except OSError as e:
-        raise MapError(f"{path}: the image cannot be read ({e}); it may be truncated") from None
+    except (OSError, ValueError, SyntaxError) as e:  # truncated data, a broken header
+        raise MapError(f"{path}: the image cannot be read ({shown(str(e), 120)}); it may be"
+                       " truncated") from None  # fmt: skip
+
+
+def header_size(head: bytes) -> tuple[int, int] | None:
+    """(width, height) as a PNG's or a PNM's (PGM's) header states it, read before any decoding;
+    None for anything else (Pillow then says what it is)."""
+    import struct
+
+    if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR" and len(head) >= 24:
+        return struct.unpack(">II", head[16:24])
+    if len(head) >= 2 and head[:1] == b"P" and head[1:2] in b"123456":
+        text = re.sub(rb"#[^\n]*", b" ", head[2:256])  # comments may sit between the numbers
+        numbers = re.match(rb"\s+(\d{1,12})\s+(\d{1,12})\s", text)
+        if numbers:
+            return int(numbers[1]), int(numbers[2])
+    return None
+
+
+def check_pixels(head: bytes, where: Path | str, limit: int) -> None:
+    """MapError, before decoding, for an image whose header claims more than ``limit`` pixels
+    (a decompression bomb, or a map saved far finer than a grid can use)."""
+    size = header_size(head)
+    if size is not None and size[0] * size[1] > limit:
+        raise MapError(f"{where}: {size[0]:,} x {size[1]:,} pixels is more than the {limit:,} a"
+                       " map may have; save it at a coarser resolution")  # fmt: skip
 
 
 def occupancy(grey: np.ndarray, occupied_thresh: float, free_thresh: float, negate: bool,
@@ -147,14 +228,9 @@ def load_map(path: str | Path, resolution: float | None = None, occupied_thresh:
 
 
 def _load_yaml(path: Path, unknown_free: bool) -> OccupancyMap:
-    import yaml
-
     if not path.is_file():
         raise MapError(f"{path}: no such file")
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except (yaml.YAMLError, UnicodeDecodeError) as e:
-        raise MapError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
+    doc = read_yaml_doc(path.read_bytes(), str(path))
     if not isinstance(doc, dict):
         raise MapError(f"{path}: a map_server YAML is a mapping with image, resolution and origin")
 
@@ -164,7 +240,10 @@ def _load_yaml(path: Path, unknown_free: bool) -> OccupancyMap:
                            " and origin)")  # fmt: skip
         return doc[key]
 
-    image = path.parent / str(need("image"))
+    named = need("image")
+    if not isinstance(named, str):
+        raise MapError(f"{path}: field 'image' must be the image's file name; got {shown(named)}")
+    image = path.parent / named
     raw_resolution, raw_origin = need("resolution"), need("origin")
     try:
         resolution = float(raw_resolution)
@@ -172,13 +251,15 @@ def _load_yaml(path: Path, unknown_free: bool) -> OccupancyMap:
         occ = float(doc.get("occupied_thresh", 0.65))
         free = float(doc.get("free_thresh", 0.196))
         negate = bool(int(doc.get("negate", 0)))
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise MapError(f"{path}: resolution, origin, occupied_thresh, free_thresh and negate must"
                        " be numbers (origin: [x, y, yaw])") from None  # fmt: skip
-    if not (resolution > 0 and math.isfinite(resolution)):
-        raise MapError(f"{path}: field 'resolution' is {resolution}; it must be > 0 (metres per pixel)")
-    if len(origin) != 3:
-        raise MapError(f"{path}: field 'origin' must be [x, y, yaw]; got {origin}")
+    if not (0 < resolution <= MAX_RESOLUTION_M):
+        raise MapError(f"{path}: field 'resolution' is {resolution:g}; allowed: 0 < resolution <="
+                       f" {MAX_RESOLUTION_M:g} (metres per pixel)")  # fmt: skip
+    if len(origin) != 3 or not all(math.isfinite(v) and abs(v) <= 1e6 for v in origin):
+        raise MapError(f"{path}: field 'origin' must be [x, y, yaw], finite and within 1e6 m; got"
+                       f" {shown(origin)}")  # fmt: skip
     if abs(origin[2]) > 1e-9:
         raise MapError(f"{path}: field 'origin' has yaw {origin[2]}; only maps with yaw 0 can be"
                        " laid on the grid (rotate the image and set yaw to 0)")  # fmt: skip
@@ -187,7 +268,7 @@ def _load_yaml(path: Path, unknown_free: bool) -> OccupancyMap:
                        " free_thresh < occupied_thresh <= 1")  # fmt: skip
     mode = str(doc.get("mode", "trinary"))
     if mode not in ("trinary", "scale"):
-        raise MapError(f"{path}: field 'mode' is {mode!r}; QuickNav reads 'trinary' and 'scale' maps")
+        raise MapError(f"{path}: field 'mode' is {shown(mode)}; QuickNav reads 'trinary' and 'scale' maps")
     grey = _read_image(image)
     blocked = occupancy(grey, occ, free, negate, unknown_free)[::-1]
     return OccupancyMap(str(path), np.ascontiguousarray(blocked), resolution, (origin[0], origin[1]),

@@ -14,7 +14,7 @@ from quicknav_core.runtime import Runtime
 from quicknav_service.api import docs, errors, openapi
 from quicknav_service.api.event_hub import EventHub
 from quicknav_service.api.metrics import RequestMetrics
-from quicknav_service.api.middleware import BodyLimit, CrossSiteGuard, TrustedHosts
+from quicknav_service.api.middleware import BodyLimit, CrossSiteGuard, SecurityHeaders, TrustedHosts
 from quicknav_service.api.routes import artifacts, events, jobs, maps, ops
 from quicknav_service.api.routes.events import StreamSlots
 from quicknav_service.auth import FailureLimiter
@@ -96,6 +96,7 @@ def create_app(
                        uploads={"/maps": settings.max_map_upload_bytes})  # fmt: skip
     app.add_middleware(CrossSiteGuard, origins=settings.trusted_origins)
     app.add_middleware(TrustedHosts, hosts=settings.trusted_hosts)
+    app.add_middleware(SecurityHeaders)
     app.add_middleware(RequestMetrics)  # outermost: it sees every answer, refusals included
 
     app.include_router(jobs.router)

@@ -312,6 +312,19 @@ def test_errors__set_with_a_space_says_to_write_key_equals_value(args):
     assert "unexpected extra argument" not in r.output
 
 
+def test_eval_sets__env_prefix_spelt_as_maps_upload_prints_it_works_for_eval_jobs(service):
+    """`quicknav maps upload` prints `--set env.maps.train=...` (a train job's spelling); an eval's
+    --set takes env fields, and both spellings name the same field, for jobs and local evals."""
+    ref = '["map:0123456789abcdef"]'
+    for spelling in ("env.", ""):
+        r = cli("jobs", "submit", "eval", "--policy", "oracle", "--set", f"{spelling}maps.train={ref}",
+                "--set", f"{spelling}grid_size=18")  # fmt: skip
+        assert r.exit_code == 0, r.output
+        assert service.bodies()[-1]["env"] == {"maps.train": ["map:0123456789abcdef"], "grid_size": 18}
+    local = cli("eval", "--policy", "oracle", "--set", "env.grid_size=8", "--print-config")
+    assert local.exit_code == 0 and json.loads(local.stdout)["env"]["grid_size"] == 8, local.output
+
+
 def test_version__prints_the_packages_version():
     r = cli("--version")
     assert r.exit_code == 0 and r.stdout.strip() == f"quicknav {package_version('quicknav')}"

@@ -17,7 +17,7 @@ belong to a journey and runs their lines one by one, as they are written, with t
   demo (``trained``): ``tests/trained.py`` ran this very command once for the whole test run, and
   its run folder is copied where the command writes it (one training to target per test run).
 - ``<id>`` is the job id the command before printed, cut to its first 8 characters (the short id
-  a user copies); ``<run-dir>`` is the run folder ``quicknav train`` printed; ``<map-id>`` the map
+  a user copies); ``<eval-id>`` the id ``quicknav jobs submit eval`` printed, cut the same way; ``<run-dir>`` is the run folder ``quicknav train`` printed; ``<map-id>`` the map
   id ``quicknav maps upload`` printed.
 - a ``curl`` line gets ``-w`` with the HTTP status appended, so that each one is checked for it.
 - a ``python`` block runs as a script (``uv run python -``), with ``127.0.0.1:8000`` and
@@ -137,6 +137,7 @@ class Runner:
     last_id: str | None = None
     run_dir: str | None = None
     map_id: str | None = None
+    eval_id: str | None = None
     history: list[Ran] = field(default_factory=list)
     server: subprocess.Popen | None = None
     shared: Runner | None = None  # the module's service this runner's commands talk to
@@ -164,6 +165,9 @@ class Runner:
         if "<id>" in command:
             assert self.last_id, f"{command!r} needs a job id, and no command before printed one"
             command = command.replace("<id>", self.last_id[:8])
+        if "<eval-id>" in command:
+            assert self.eval_id, f"{command!r} needs an eval job's id, and no `jobs submit eval` ran"
+            command = command.replace("<eval-id>", self.eval_id[:8])
         if "<map-id>" in command:
             assert self.map_id, f"{command!r} needs a map id, and no upload printed one"
             command = command.replace("<map-id>", self.map_id)
@@ -198,6 +202,8 @@ class Runner:
         ids = JOB_ID.findall(done.stdout)
         if ids:
             self.last_id = ids[-1]
+            if "jobs submit eval" in command:
+                self.eval_id = ids[-1]
         found = RUN_DIR.search(done.stdout)
         if found:
             self.run_dir = found["dir"]

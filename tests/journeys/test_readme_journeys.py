@@ -178,7 +178,8 @@ def test_journey__quick_start(runner, service):
             assert manifest["held_out"]["eval_job_id"] == evaluated
             assert manifest["held_out"]["success_rate"] == success
         elif "jobs artifacts" in command:
-            listed = httpx.get(f"{runner.url}/jobs/{runner.last_id}/artifacts").json()["artifacts"]
+            assert "<eval-id>" in command  # README names the eval job, not the train job
+            listed = httpx.get(f"{runner.url}/jobs/{evaluated}/artifacts").json()["artifacts"]
             names = {f["name"] for f in listed}
             for name in ("eval.json", "replay.json", "trajectories.png", "difficulty.png"):
                 assert name in names and name in ran.stdout, (name, str(ran))

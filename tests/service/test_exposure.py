@@ -70,8 +70,20 @@ def test_trusted_hosts__a_foreign_host_name_is_refused_everywhere(api):
         r = client.get(path, headers={"Host": "attacker.example"})
         assert r.status_code == 400, path
         assert "attacker.example" in r.json()["detail"] and "QUICKNAV_ALLOWED_HOSTS" in r.json()["detail"]
+        # the names the server does answer to are not told to a stranger
+        assert not any(h in r.json()["detail"] for h in ("testserver", "127.0.0.1", "localhost")), r.text
     assert client.get("/healthz", headers={"Host": "localhost:8000"}).status_code == 200
     assert client.get("/healthz", headers={"Host": "[::1]:8000"}).status_code == 200
+
+
+def test_security_headers__no_other_site_may_frame_any_answer(api):
+    client, _ = api
+    for path, host in (("/", "localhost"), ("/healthz", "localhost"), ("/docs", "localhost"),
+                       ("/jobs/nope", "localhost"), ("/healthz", "attacker.example")):  # fmt: skip
+        r = client.get(path, headers={"Host": host})
+        assert r.headers["x-frame-options"] == "DENY", (path, r.status_code)
+        assert r.headers["content-security-policy"] == "frame-ancestors 'none'", path
+        assert r.headers["x-content-type-options"] == "nosniff", path
 
 
 def test_trusted_hosts__defaults_are_localhost_and_the_bound_address(tmp_path):

@@ -141,17 +141,31 @@ BAD = {
     "thresholds out of order": ([("room.yaml", yaml_for(free_thresh=0.9)), ("room.pgm", pgm(room_picture()))],
                                 "files", "free_thresh"),
     "all occupied": ([("dark.png", png(np.zeros((40, 40), np.uint8)))], "files", "no free pixel"),
+    # hostile files: each a 422 that names the rule, cheaply, never a 500 or an echo of the input
+    "truncated text PGM": ([("room.pgm", b"P2\n40 40\n255\n255 255\n")], "files", "truncated"),
+    "a 5000-digit number": ([("room.yaml", yaml_for(resolution="1" * 5000)), ("room.pgm", pgm(room_picture()))],
+                            "files", "a value of 5,000 characters"),
+    "a list nested 5000 deep": ([("room.yaml", yaml_for(extra="[" * 5000 + "]" * 5000)),
+                                 ("room.pgm", pgm(room_picture()))], "files", "nested more than 8"),
+    "nested aliases": ([("room.yaml", b"a: &a [x, x, x, x, x, x, x, x, x]\nb: &b [*a, *a, *a, *a, *a, *a]\n"
+                         b"c: &c [*b, *b, *b, *b, *b, *b]\nh: &h [*c, *c, *c, *c, *c, *c]\nimage: *h\n"),
+                        ("room.pgm", pgm(room_picture()))], "files", "aliases"),
+    "resolution 1e300": ([("room.yaml", yaml_for(resolution="1e300")), ("room.pgm", pgm(room_picture()))],
+                         "files", "allowed: 0 < resolution <= 100"),
+    "a PGM named .png": ([("room.png", pgm(room_picture()))], "files", "its contents are .pgm, not .png"),
 }  # fmt: skip
+PLAIN = ("all occupied", "not a picture", "truncated text PGM", "a PGM named .png")
 
 
 @pytest.mark.parametrize("case", list(BAD))
 def test_upload__bad_files_are_refused_naming_the_problem(server, case):
     files, field, words = BAD[case]
-    form = {"resolution": RES} if case in ("all occupied", "not a picture") else {}
+    form = {"resolution": RES} if case in PLAIN else {}
     r = upload(server.url, files, **form)
     assert r.status_code == 422, r.text
     item = r.json()["detail"][0]
     assert item["loc"] == ["body", field] and words in item["msg"], item
+    assert len(r.content) < 2000, f"the answer echoes the input: {len(r.content)} bytes"
     assert httpx.get(f"{server.url}/maps").json()["count"] == 0
 
 
@@ -166,6 +180,14 @@ def test_upload__limits_and_form_fields(server):
     big = np.full((700, 700), FREE, np.uint8)
     r = upload(server.url, [("big.png", png(big))], resolution=RES)
     assert r.status_code == 413 and "QUICKNAV_MAX_MAP_PIXELS" in r.json()["detail"]
+    # a header that claims a huge picture is 413 with the limit, before anything is decoded
+    header = b"P5\n100000 100000\n255\n" + bytes(1000)
+    bomb = bytearray(png(np.full((8, 8), FREE, np.uint8)))
+    bomb[16:24] = (30000).to_bytes(4, "big") * 2  # IHDR: 30000 x 30000
+    for name, data in (("huge.pgm", header), ("bomb.png", bytes(bomb))):
+        r = upload(server.url, [(name, data)], resolution=RES)
+        assert r.status_code == 413, r.text
+        assert "is more than the 400,000" in r.json()["detail"] and "QUICKNAV_MAX_MAP_PIXELS" in r.json()["detail"]
     # the JSON body limit does not apply to uploads, their own does
     assert r.request.headers["content-length"] and int(r.request.headers["content-length"]) < 1_000_000
 
@@ -343,6 +365,13 @@ def test_cli__maps_upload_list_show_delete(server, tmp_path):
     assert f"--set env.maps.train='[\"map:{map_id}\"]' --set env.grid_size=18 --set env.room_size=9" in up.output
     listed = cli.invoke(app, [*url, "list"])
     assert listed.exit_code == 0 and map_id in listed.output and "my room" in listed.output
+    # 8 characters of the id are enough, as for jobs; fewer is refused, an unknown prefix is 404
+    short = cli.invoke(app, [*url, "show", map_id[:8]])
+    assert short.exit_code == 0 and map_id in short.output, short.output
+    assert httpx.get(f"{server.url}/maps/{map_id[:8]}/files/map.yaml").status_code == 200
+    assert httpx.get(f"{server.url}/maps/{map_id[:7]}").status_code == 422
+    unknown = "0123456789abcdef"[: 8] if not map_id.startswith("01234567") else "fedcba98"
+    assert httpx.get(f"{server.url}/maps/{unknown}").status_code == 404
     shown = cli.invoke(app, [*url, "show", map_id, "--preview", str(tmp_path / "p.png"),
                              "--download", str(tmp_path / "dl")])  # fmt: skip
     assert shown.exit_code == 0, shown.output

@@ -19,8 +19,9 @@ from quicknav_service.schemas import MapPublic, MapsPublic
 
 router = APIRouter(prefix="/maps", tags=["maps"], dependencies=[Depends(require_token)],
                    responses=responses(*AUTH, *STORE))  # fmt: skip
-MapId = Annotated[str, Path(min_length=16, max_length=16, pattern="^[0-9a-f]{16}$",
-                            description="a map's id (16 hex digits, as POST /maps answers)")]  # fmt: skip
+MapId = Annotated[str, Path(min_length=8, max_length=16, pattern="^[0-9a-f]{8,16}$",
+                            description="a map's id (16 hex digits, as POST /maps answers) or a"
+                            " unique prefix of 8 or more")]  # fmt: skip
 PAGE = 500
 # the stored files a client may download, by name
 FILES = {"map.yaml": "application/yaml", "map.pgm": "image/x-portable-graymap", "map.png": "image/png"}
@@ -94,14 +95,28 @@ def list_maps(library: LibraryDep, jobs: JobsDep) -> MapsPublic:
     return MapsPublic(data=data, count=len(data))
 
 
+def _full_id(library: MapLibrary, map_id: str) -> str:
+    """The id a prefix (8 or more hex digits, as the CLI prints them) stands for: 404 for none,
+    409 naming the candidates for more than one."""
+    if len(map_id) == 16:
+        return map_id
+    found = sorted(m["id"] for m in library.list() if m["id"].startswith(map_id))
+    if not found:
+        raise HTTPException(404, f"no map {map_id!r} (GET /maps lists them)")
+    if len(found) > 1:
+        raise HTTPException(409, f"map id prefix {map_id!r} names {len(found)} maps"
+                            f" ({', '.join(found[:5])}); give more of the id")  # fmt: skip
+    return found[0]
+
+
 def _meta(library: MapLibrary, map_id: str) -> dict:
-    meta = library.get(map_id)
+    meta = library.get(_full_id(library, map_id))
     if meta is None:
         raise HTTPException(404, f"no map {map_id!r} (GET /maps lists them)")
     return meta
 
 
-@router.get("/{map_id}", response_model=MapPublic, responses=responses(404, 422))
+@router.get("/{map_id}", response_model=MapPublic, responses=responses(404, 409, 422))
 def get_map(map_id: MapId, library: LibraryDep, jobs: JobsDep) -> MapPublic:
     """One map: its size, resolution, free space, the env fields that hold it, and who uses it."""
     return _public(_meta(library, map_id), _active_use(jobs))
@@ -114,11 +129,11 @@ BINARY = {"schema": {"type": "string", "format": "binary"}}
     # octet-stream first: generated clients read it as bytes (they know no image types)
     200: {"content": {"application/octet-stream": BINARY, "image/png": BINARY},
           "description": "the map as a picture: free light, unknown grey, occupied dark"},
-    **responses(404, 422)})  # fmt: skip
+    **responses(404, 409, 422)})  # fmt: skip
 def map_preview(map_id: MapId, library: LibraryDep) -> Response:
     """The map's picture, top row first (at most 1,024 pixels a side; preview_m_per_px says the
     scale)."""
-    data = library.preview(map_id)
+    data = library.preview(_full_id(library, map_id))
     if data is None:
         raise HTTPException(404, f"no map {map_id!r} (GET /maps lists them)")
     return Response(data, media_type="image/png", headers={"Cache-Control": "max-age=86400, immutable"})
@@ -127,11 +142,11 @@ def map_preview(map_id: MapId, library: LibraryDep) -> Response:
 @router.get("/{map_id}/files/{name}", response_class=Response, responses={
     200: {"content": {"application/octet-stream": BINARY, **{t: BINARY for t in FILES.values()}},
           "description": "one stored map file"},
-    **responses(404, 422)})  # fmt: skip
+    **responses(404, 409, 422)})  # fmt: skip
 def map_file(map_id: MapId, name: str, library: LibraryDep, jobs: JobsDep) -> Response:
     """One stored file of the map: ``map.yaml`` and the image it names (``map.pgm`` or ``map.png``),
     a map_server pair that `quicknav train` reads as it is."""
-    _meta(library, map_id)
+    map_id = _meta(library, map_id)["id"]
     data = jobs.artifacts.read_bytes(f"maps/{map_id}", name) if name in FILES else None
     if data is None:
         raise HTTPException(404, f"map {map_id} has no file {name!r}; it has map.yaml and the"
@@ -143,7 +158,7 @@ def map_file(map_id: MapId, name: str, library: LibraryDep, jobs: JobsDep) -> Re
                responses=responses(403, 404, 409, 422))  # fmt: skip
 def delete_map(map_id: MapId, library: LibraryDep, jobs: JobsDep) -> Response:
     """Delete a map no queued or running job uses (finished jobs keep their own results)."""
-    _meta(library, map_id)
+    map_id = _meta(library, map_id)["id"]
     busy = sorted(set(_active_use(jobs).get(map_id, [])))
     if busy:
         return JSONResponse({"detail": f"map {map_id} is used by queued or running job(s)"

@@ -203,12 +203,21 @@ def test_map__bad_files_are_refused_naming_the_file_and_the_fix(tmp_path):
         "rotated": (tmp_path / "rot.yaml", b"image: map.pgm\nresolution: 0.5\norigin: [0, 0, 0.3]\n", "yaw 0.3"),
         "bad thresholds": (tmp_path / "th.yaml", b"image: map.pgm\nresolution: 0.5\norigin: [0, 0, 0]\nfree_thresh: 0.9\n", "free_thresh"),
         "missing image": (tmp_path / "noimg.yaml", b"image: nope.pgm\nresolution: 0.5\norigin: [0, 0, 0]\n", "nope.pgm: no such file"),
+        # hostile files: refused by rule, cheaply, with nothing of the input echoed at length
+        "truncated PGM": (tmp_path / "cut.pgm", b"P2\n40 40\n255\n255 255\n", "truncated"),
+        "huge header": (tmp_path / "huge.pgm", b"P5\n100000 100000\n255\n" + bytes(64), "more than the 64,000,000"),
+        "5000 digits": (tmp_path / "digits.yaml", b"image: map.pgm\norigin: [0, 0, 0]\nresolution: 1" + b"0" * 5000, "5,001 characters"),
+        "deep": (tmp_path / "deep.yaml", b"image: map.pgm\nx: " + b"[" * 5000 + b"]" * 5000, "nested more than"),
+        "aliases": (tmp_path / "alias.yaml", b"a: &a [1, 1, 1]\nb: &b [*a, *a, *a]\nimage: *b\n", "aliases"),
+        "image not a name": (tmp_path / "list.yaml", b"image: [1, 2]\nresolution: 0.5\norigin: [0, 0, 0]\n", "file name"),
+        "resolution 1e300": (tmp_path / "coarse.yaml", b"image: map.pgm\nresolution: 1e300\norigin: [0, 0, 0]\n", "<= 100"),
     }  # fmt: skip
     for what, (path, data, message) in cases.items():
         path.write_bytes(data)
         with pytest.raises(MapError, match=message) as e:
             load_map(path, resolution=0.5 if path.suffix == ".pgm" else None)
         assert path.name in str(e.value) or "nope.pgm" in str(e.value), what
+        assert len(str(e.value)) < 600, what
     with pytest.raises(MapError, match=r"maps\.resolution"):
         load_map(tmp_path / "map.pgm")  # a plain image without its scale
     big = load_map(good)

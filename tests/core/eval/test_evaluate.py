@@ -192,6 +192,7 @@ def test_eval_cli__baseline_writes_results_and_pictures(tmp_path):
     result = CliRunner().invoke(app, ["eval", "--policy", "random", "--episodes", "8", "--set",
                                       "grid_size=8", "--out", str(tmp_path)])  # fmt: skip
     assert result.exit_code == 0, result.output
+    assert "return, mean ± std" in result.output  # the spread is named, not a bare ±
     assert json.loads((tmp_path / "eval.json").read_text())["metrics"]["episodes"] == 8
     assert (tmp_path / "trajectories.png").exists() and (tmp_path / "episodes.gif").exists()
 
