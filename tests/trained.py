@@ -71,7 +71,7 @@ def trained_demo() -> Path:
 # README's building journey trains `--preset building` for 33.5M steps (about 10 min on 2 cores); the
 # test run trains the same preset for this many (a policy that has learned to follow the plan, not
 # the finished one: the journey test asserts what this budget reaches)
-BUILDING_TEST_STEPS = 3_145_728
+BUILDING_TEST_STEPS = 6_291_456
 
 
 def trained_building() -> Path:

@@ -18,7 +18,7 @@ import math
 import jax
 import jax.numpy as jnp
 
-from quicknav_core.env.dynamics import disc_overlaps_wall_bits
+from quicknav_core.env.bits import unpack_rows
 
 INF = 1e9
 # 8 neighbours (d_row, d_col), orthogonal first
@@ -35,12 +35,48 @@ def node_positions(grid_size: int, room_size: float | jax.Array, k: int) -> jax.
 
 
 def usable_nodes(row_bits: jax.Array, room_size, radius, k: int, reach: int = 0) -> jax.Array:
-    """(n, n) bool: the disc fits at the node (``reach``: as in ``disc_overlaps_wall_bits``)."""
+    """(n, n) bool: the disc fits at the node (``disc_overlaps_wall_bits`` at every node, same
+    arithmetic). Computed on the unpacked grid with whole-array gathers: per-node reads of the
+    packed rows would hold a (nodes, g, words) selection at once, gigabytes on a large map."""
     g = row_bits.shape[0]
-    pts = node_positions(g, room_size, k).reshape(-1, 2)
     cell = room_size / g
-    hit = jax.vmap(lambda p: disc_overlaps_wall_bits(p, row_bits, cell, radius, reach))(pts)
-    return ~hit.reshape(g * k, g * k)
+    pad = max(reach, 1)
+    # columns beyond the grid read as free (as ``read_bit`` past the row's bits); rows beyond it
+    # repeat the nearest row (as the clipped row index does)
+    walls = jnp.pad(unpack_rows(row_bits, g), ((0, 0), (pad, pad)), constant_values=False)
+    pts = node_positions(g, room_size, k)
+    x, y = pts[..., 0], pts[..., 1]
+
+    def wall(r, c):
+        return walls[jnp.clip(r, 0, g - 1), jnp.clip(c, -pad, g - 1 + pad) + pad]
+
+    if reach:
+        col, row = jnp.floor(x / cell).astype(jnp.int32), jnp.floor(y / cell).astype(jnp.int32)
+        hit = jnp.zeros(x.shape, bool)
+        for dy in range(-reach, reach + 1):
+            r = row + dy
+            gap_y = jnp.maximum(jnp.maximum(r * cell - y, y - (r + 1) * cell), 0.0)
+            for dx in range(-reach, reach + 1):
+                c = col + dx
+                gap_x = jnp.maximum(jnp.maximum(c * cell - x, x - (c + 1) * cell), 0.0)
+                hit = hit | (wall(r, c) & (gap_x * gap_x + gap_y * gap_y < radius * radius))
+        return ~hit
+    rx, ry = x / cell, y / cell
+    fx, fy = jnp.floor(rx), jnp.floor(ry)
+    col, row = fx.astype(jnp.int32), fy.astype(jnp.int32)
+    frac_x, frac_y = rx - fx, ry - fy
+    step_x = jnp.where(frac_x >= 0.5, 1, -1).astype(jnp.int32)
+    step_y = jnp.where(frac_y >= 0.5, 1, -1).astype(jnp.int32)
+    gap_x = jnp.where(frac_x >= 0.5, 1.0 - frac_x, frac_x) * cell
+    gap_y = jnp.where(frac_y >= 0.5, 1.0 - frac_y, frac_y) * cell
+    near_col, near_row = col + step_x, row + step_y
+    hit = (
+        wall(row, col)
+        | (wall(row, near_col) & (gap_x < radius))
+        | (wall(near_row, col) & (gap_y < radius))
+        | (wall(near_row, near_col) & (gap_x * gap_x + gap_y * gap_y < radius * radius))
+    )
+    return ~hit
 
 
 def _shift(a: jax.Array, dr: int, dc: int, fill) -> jax.Array:

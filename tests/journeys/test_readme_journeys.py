@@ -333,9 +333,10 @@ def drive_with_navigator(folder, env_config: dict, episodes: int) -> dict:
 
     from quicknav_core.config import EnvConfig
     from quicknav_core.env.constants import HIT_NONE
-    from quicknav_core.env.numpy_env import QuickNavNumpyEnv
+    from quicknav_core.env.numpy_env import QuickNavNumpyEnv, cast_lidar_np
 
     nav = Navigator.load(folder)
+    angles = np.asarray(nav.policy.manifest["lidar"]["beam_angles_rad"], np.float32)
     cfg = EnvConfig(**{**env_config, "obstacles": None})
     twin = QuickNavNumpyEnv(cfg, split="test")
     corner, cell = np.asarray(nav.frame["grid_corner_in_map"]), float(nav.frame["cell_m"])
@@ -353,7 +354,10 @@ def drive_with_navigator(folder, env_config: dict, episodes: int) -> dict:
         done = False
         while not done:
             s = twin.snapshot()
-            scan = np.where(s["lidar_hits"] == HIT_NONE, np.inf, s["lidar_ranges"])  # no return: inf
+            # what a real lidar reports: the walls only (the goal is no object; no return: inf)
+            ranges, hits = cast_lidar_np(s["pos"], s["theta"], np.full(2, -1e4, np.float32), s["walls"],
+                                         angles, cell, cfg.lidar_max_range, cfg.goal_radius)  # fmt: skip
+            scan = np.where(hits == HIT_NONE, np.inf, ranges)
             pose = (float(s["pos"][0] + corner[0]), float(s["pos"][1] + corner[1]), float(s["theta"]))
             mine = nav.observation(scan, pose)
             worst = max(worst, float(np.abs(mine - obs).max()))
