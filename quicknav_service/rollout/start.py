@@ -59,11 +59,20 @@ def env_fields(start: pb.Start) -> dict[str, Any]:
             fields = json.loads(start.config_json or "{}")
         except json.JSONDecodeError as e:
             raise invalid(f"start.config_json is not valid JSON ({e})") from None
+        except RecursionError:  # a client's mistake (or worse), not the server's
+            raise invalid("start.config_json is nested too deep; it is a flat JSON object of"
+                          " EnvConfig fields") from None  # fmt: skip
         if not isinstance(fields, dict):
             raise invalid("start.config_json must be a JSON object of EnvConfig fields")
         return fields
     if which == "config_fields":
-        return _ints_where_integral(json_format.MessageToDict(start.config_fields))
+        try:
+            return _ints_where_integral(json_format.MessageToDict(start.config_fields))
+        except RecursionError:
+            raise invalid("start.config_fields is nested too deep") from None
+        except (ValueError, json_format.Error) as e:  # NaN or infinity in the Struct
+            raise invalid(f"start.config_fields: {str(e)[:200]}; EnvConfig fields are finite"
+                          " numbers, strings, lists and objects") from None  # fmt: skip
     return {}
 
 

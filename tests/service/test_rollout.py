@@ -183,6 +183,27 @@ def test_rollout__errors_are_exact_status_codes(server):
         assert rc.step(np.zeros((N, 2), np.float32)).observations.shape[0] == N
 
 
+def test_rollout__hostile_starts_are_invalid_argument_not_internal(server):
+    """A client's mistake is INVALID_ARGUMENT, however it is made: JSON nested 100,000 deep, a
+    Struct holding NaN."""
+    from quicknav_client.proto.quicknav.v1 import rollout_pb2_grpc as pb_grpc
+
+    nan = pb.Start(num_envs=1)
+    nan.config_fields.update({"grid_size": float("nan")})
+    starts = {
+        "deep JSON": pb.Start(num_envs=1, config_json="[" * 100_000 + "]" * 100_000),
+        "deep object": pb.Start(num_envs=1, config_json='{"a":' * 100_000 + "1" + "}" * 100_000),
+        "NaN in a Struct": nan,
+    }
+    with grpc.insecure_channel(_target(server)) as channel:
+        stub = pb_grpc.RolloutServiceStub(channel)
+        for what, start in starts.items():
+            with pytest.raises(grpc.RpcError) as e:
+                list(stub.Rollout(iter([pb.AgentMessage(start=start)]), timeout=30))
+            assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT, (what, e.value.details())
+            assert "start.config" in e.value.details(), what
+
+
 def test_rollout__policy_job_that_does_not_exist_is_not_found(server):
     rc = RolloutClient(_target(server))
     rc.start(num_envs=2, config=CONFIG, policy_job="no-such-job")
