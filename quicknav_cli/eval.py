@@ -56,7 +56,7 @@ def eval_request(
     return request
 
 
-def map_overrides(request: dict[str, Any], path: Path) -> dict[str, Any]:
+def map_overrides(request: dict[str, Any], path: Path, say: bool = True) -> dict[str, Any]:
     """The env fields that put the request's policy (or baseline) on the map at ``path``."""
     from quicknav_core.config import resolve_env
     from quicknav_core.env.maps import MapError
@@ -68,8 +68,9 @@ def map_overrides(request: dict[str, Any], path: Path) -> dict[str, Any]:
         fit = fit_map(env, path)
     except (MapError, ValueError) as e:
         fail(f"--map: {e}")
-    console.print(f"on {path}: grid {fit.grid_size} of {fit.cell_m:g} m cells, step limit"
-                  f" {fit.max_steps} (longest path {fit.longest_path_m:.1f} m)", highlight=False)  # fmt: skip
+    if say:  # (not under --print-config, whose output is the JSON alone)
+        console.print(f"on {path}: grid {fit.grid_size} of {fit.cell_m:g} m cells, step limit"
+                      f" {fit.max_steps} (longest path {fit.longest_path_m:.1f} m)", highlight=False)  # fmt: skip
     for message in fit.warnings():
         warn(message)
     return fit.env_overrides(str(path))
@@ -119,8 +120,9 @@ def eval_cmd(
         fail(f"--split {split!r}: allowed values are test and train")
     request = eval_request(run, policy, episodes, seed, deterministic, split, config, set_,
                            robustness)  # fmt: skip
-    if on_map is not None:
-        request["env"] = {**map_overrides(request, on_map), **request["env"]}
+    if on_map is not None:  # the map over --config's env, and --set over both
+        base = read_json(config) if config else {}
+        request["env"] = {**base, **map_overrides(request, on_map, say=not print_only), **env_sets(set_)}
     cfg = resolved(resolve_eval, request, trained_env=run_env)
     if print_only:
         print_config(cfg)

@@ -138,3 +138,23 @@ def test_map_fit__grid_step_limit_and_frame_follow_the_map():
 
     with pytest.raises(MapError, match=r"a grid of \d+, above the 128 an env may have.*cells of at least"):
         fit_map(EnvConfig(**{**PLAN, "room_size": 3.6}), OFFICE)  # 0.15 m cells
+
+
+def test_eval_map__lies_over_a_config_env_and_under_set(tmp_path):
+    """`quicknav eval --policy dwa --config ENV.json --map MAP`: the map replaces the config's
+    rooms, grid and step limit (a baseline measured on the map, not on the config's floor plans);
+    --set still wins over both."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from quicknav_cli.main import app
+
+    (tmp_path / "env.json").write_text(json.dumps({**PLAN, "lidar_beams": 16}))
+    r = CliRunner().invoke(app, ["eval", "--policy", "dwa", "--config", str(tmp_path / "env.json"),
+                                 "--map", OFFICE, "--set", "max_steps=900", "--print-config"])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    env = json.loads(r.stdout)["env"]  # --print-config prints the JSON alone
+    assert env["rooms"] == "maps" and env["maps"]["train"] == [OFFICE], env
+    assert env["grid_size"] == fit_map(EnvConfig(**PLAN), OFFICE).grid_size and env["lidar_beams"] == 16
+    assert env["max_steps"] == 900
