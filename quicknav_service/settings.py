@@ -131,6 +131,12 @@ class Settings(BaseSettings):
         description="comma-separated Host names the API answers ('*' any); unset: localhost,"
         " 127.0.0.1, ::1 and the bound host (with 0.0.0.0: also this machine's names)",
     )
+    trusted_proxies: str | None = Field(
+        None,
+        description="comma-separated addresses of reverse proxies whose X-Forwarded-For and"
+        " X-Forwarded-Proto the API believes (the client's address for the auth limiter and the"
+        " event-stream caps); unset: none, every request is the address that connected",
+    )
     allowed_origins: str | None = Field(
         None,
         description="comma-separated origins (scheme://host:port) besides the API's own that may"

@@ -68,4 +68,9 @@ def uvicorn_options(settings, processes: int = 1) -> dict[str, Any]:
     else:
         protocol = type("HeaderTimeoutProtocol", (HeaderTimeoutProtocol,),
                         {"header_timeout_s": settings.header_timeout_s})  # fmt: skip
-    return {"http": protocol, "timeout_keep_alive": 5, "h11_max_incomplete_event_size": 16 * 1024}
+    # X-Forwarded-For only from the proxies the operator names: uvicorn believes 127.0.0.1 by
+    # default, which let one local client pose as any number of addresses
+    proxies = [a.strip() for a in (settings.trusted_proxies or "").split(",") if a.strip()]
+    forwarded = {"proxy_headers": True, "forwarded_allow_ips": proxies} if proxies else {"proxy_headers": False}
+    return {"http": protocol, "timeout_keep_alive": 5, "h11_max_incomplete_event_size": 16 * 1024,
+            **forwarded}

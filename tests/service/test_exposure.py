@@ -156,6 +156,22 @@ def test_auth__guessing_is_rate_limited_per_address_with_retry_after(locked):
     assert client.post("/auth/session", json={"token": TOKEN}).status_code == 429
 
 
+@pytest.mark.parametrize("proxies", [None, "127.0.0.1"])
+def test_auth__x_forwarded_for_counts_only_from_a_proxy_the_operator_names(tmp_path, proxies):
+    """Thirty wrong tokens from one local client, each claiming another address: by default the
+    claim is ignored and the limiter stops it; behind a proxy the operator names
+    (QUICKNAV_TRUSTED_PROXIES), each forwarded address is its own client."""
+    with LiveServer(tmp_path, api_token=TOKEN, auth_failures_max=5, auth_failure_window_s=30,
+                    trusted_proxies=proxies) as live:  # fmt: skip
+        codes = [httpx.get(f"{live.url}/jobs", headers={"Authorization": "Bearer nope",
+                                                         "X-Forwarded-For": f"10.1.0.{i}"}).status_code
+                 for i in range(30)]  # fmt: skip
+    if proxies is None:
+        assert codes[:5] == [401] * 5 and set(codes[5:]) == {429}, codes
+    else:
+        assert set(codes) == {401}, codes
+
+
 def test_auth__the_session_route_counts_failures_too(locked):
     client, _, _ = locked
     for _ in range(5):
