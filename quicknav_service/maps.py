@@ -179,7 +179,10 @@ class MapLibrary:
                                  " unknown (check negate and the thresholds)")  # fmt: skip
         map_id = hashlib.sha256(yaml_bytes + b"\0" + image_bytes).hexdigest()[:ID_LENGTH]
         existing = self.get(map_id)
-        if existing is not None:
+        if existing is not None:  # the same files: the same map, under the name given now
+            if name and name[:200] != existing["name"]:
+                existing["name"] = name[:200]
+                self.artifacts.put_bytes(f"{MAPS}/{map_id}", "meta.json", json.dumps(existing).encode())
             return existing
         width_m, height_m = m.size_m
         grid = max(math.ceil(width_m / SUGGESTED_CELL_M - 1e-9), math.ceil(height_m / SUGGESTED_CELL_M - 1e-9)) + 2

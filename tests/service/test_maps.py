@@ -366,6 +366,10 @@ def test_cli__maps_upload_list_show_delete(server, tmp_path):
     listed = cli.invoke(app, [*url, "list"])
     assert listed.exit_code == 0 and map_id in listed.output and "my room" in listed.output
     # 8 characters of the id are enough, as for jobs; fewer is refused, an unknown prefix is 404
+    # the same files again under another name: the same map, renamed (not silently the old name)
+    again = cli.invoke(app, [*url, "upload", str(tmp_path / "room.yaml"), "--name", "lab"])
+    assert again.exit_code == 0 and again.output.split()[1] == map_id and "(lab)" in again.output, again.output
+    assert httpx.get(f"{server.url}/maps/{map_id}").json()["name"] == "lab"
     short = cli.invoke(app, [*url, "show", map_id[:8]])
     assert short.exit_code == 0 and map_id in short.output, short.output
     assert httpx.get(f"{server.url}/maps/{map_id[:8]}/files/map.yaml").status_code == 200

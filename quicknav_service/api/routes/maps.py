@@ -57,7 +57,7 @@ def _public(meta: dict, used: dict[str, list[str]]) -> MapPublic:
 
 @router.post("", status_code=201, response_model=MapPublic,
              responses={**responses(400, 401, 403, 413, 415, 422),
-                        201: {"description": "stored (or already stored: the same files give the same id)",
+                        201: {"description": "stored (or already stored: the same files give the same id, renamed if a name is given)",
                               "headers": {"Location": {"description": "the map's URL", "required": True,
                                                        "schema": {"type": "string"}}}}})  # fmt: skip
 def upload_map(
