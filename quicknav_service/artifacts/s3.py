@@ -16,6 +16,8 @@ Layout under ``s3://bucket/prefix/``::
 The pointer is written last, after every object it names is uploaded and its size checked, so a
 reader (a resuming worker, a download) sees a whole checkpoint; a replay buffer that did not change
 since the last checkpoint is not uploaded again (the pointer names the version that holds it).
+``config.json`` and ``metrics.jsonl`` go up before the pointer, so the metrics in the bucket always
+reach the published checkpoint's chunk (a resume drops the rows past it).
 What is not here: room-bank caches and JAX's compilation cache stay on each machine's disk (both
 are rebuilt from the config in seconds, and a local read beats a fetch); a sweep's study lives in
 the job store's backend (Optuna's journal on Redis), never as a SQLite file on the object store.
@@ -210,12 +212,19 @@ class S3Artifacts(ArtifactStore):
         folder = self.work_dir(job_id)
         if not folder.exists():
             return
+        # the run files before the pointer: a published checkpoint never names a chunk whose
+        # metrics row is not in the bucket (a resume drops rows past its checkpoint; it cannot
+        # bring back one that was never uploaded)
+        first = [n for n in RUN_FILES if (folder / n).is_file()]
+        for name in first:
+            self._retrying(f"uploading job {job_id}'s {name}",
+                           lambda n=name: self._put(f"{job_id}/{n}", folder / n))  # fmt: skip
         self._retrying(f"uploading job {job_id}'s checkpoint", lambda: self._publish_checkpoint(job_id, folder))
         if checkpoint_only:
-            names = [n for n in RUN_FILES if (folder / n).is_file()]
-        else:
-            names = [p.relative_to(folder).as_posix() for p in sorted(folder.rglob("*"))
-                     if p.is_file() and not _private(p.relative_to(folder))]  # fmt: skip
+            return
+        names = [p.relative_to(folder).as_posix() for p in sorted(folder.rglob("*"))
+                 if p.is_file() and not _private(p.relative_to(folder))
+                 and p.relative_to(folder).as_posix() not in first]  # fmt: skip
         for name in names:
             self._retrying(f"uploading job {job_id}'s {name}",
                            lambda n=name: self._put(f"{job_id}/{n}", folder / n))  # fmt: skip

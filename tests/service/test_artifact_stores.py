@@ -164,6 +164,28 @@ def test_an_upload_that_fails_halfway_leaves_the_previous_checkpoint(s3_env, tmp
     assert b.pointer("j")["chunk"] == 2
 
 
+def test_a_worker_killed_between_uploads_never_leaves_a_checkpoint_past_the_metrics(s3_env, tmp_path,
+                                                                                   monkeypatch):  # fmt: skip
+    """The kill the two-machine test once caught: the pointer moved to chunk 3, then the worker
+    died before metrics.jsonl went up, and the resumed run had no row for chunk 3. The run files
+    now go up first: at the moment the pointer moves, the bucket's metrics reach its chunk."""
+    a = S3Artifacts(s3_env.url(), tmp_path / "a", retry_s=0)
+    write_run(a.work_dir("j"), chunk=2)
+    a.save("j", checkpoint_only=True)
+    write_run(a.work_dir("j"), chunk=3)
+    real, seen = a._put, []
+
+    def watch(key, data):
+        if key.endswith(POINTER):  # the pointer is about to move: what would a resume find?
+            rows = [json.loads(x) for x in a.read_bytes("j", "metrics.jsonl").splitlines()]
+            seen.append((json.loads(data)["chunk"], rows[-1]["chunk"]))
+        return real(key, data)
+
+    monkeypatch.setattr(a, "_put", watch)
+    a.save("j", checkpoint_only=True)
+    assert seen == [(3, 3)], seen
+
+
 def test_an_outage_is_an_error_naming_the_store_and_nothing_published_is_lost(s3_env, tmp_path):
     a = S3Artifacts(s3_env.url(), tmp_path / "a", retry_s=1)
     write_run(a.work_dir("j"), chunk=1)
