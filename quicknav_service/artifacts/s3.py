@@ -216,8 +216,8 @@ class S3Artifacts(ArtifactStore):
         # metrics row is not in the bucket (a resume drops rows past its checkpoint; it cannot
         # bring back one that was never uploaded)
         first = [n for n in RUN_FILES if (folder / n).is_file()]
-        for name in first:
-            self._retrying(f"uploading job {job_id}'s {name}",
+        for name in first:  # part of publishing the checkpoint (its chunk's metrics)
+            self._retrying(f"uploading job {job_id}'s checkpoint ({name})",
                            lambda n=name: self._put(f"{job_id}/{n}", folder / n))  # fmt: skip
         self._retrying(f"uploading job {job_id}'s checkpoint", lambda: self._publish_checkpoint(job_id, folder))
         if checkpoint_only:

@@ -10,6 +10,7 @@ real worker processes and a SIGKILL is ``test_two_machines_resume_from_the_bucke
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import subprocess
@@ -257,8 +258,13 @@ def test_two_machines_resume_from_the_bucket(tmp_path, s3_env):
         # the TensorBoard curve in the bucket has every chunk once, A's included
         events = [a for a in bucket.list(job.id) if a.name.startswith("events.out.tfevents")]
         assert len(events) == 1, events
-        steps = scalar_steps(bucket.read_bytes(job.id, events[0].name), "train/mean_return")
-        assert steps == [r["env_steps"] for r in rows], (steps, [r["env_steps"] for r in rows])
+        data = bucket.read_bytes(job.id, events[0].name)
+        # a chunk with no finished episode has no mean return (NaN, left out of TensorBoard): small
+        # chunks on a slow machine have some; steps/s is there for every chunk
+        assert scalar_steps(data, "train/steps_per_s") == [r["env_steps"] for r in rows]
+        finite = [r["env_steps"] for r in rows if r.get("mean_return") is not None
+                  and math.isfinite(r["mean_return"])]  # fmt: skip
+        assert scalar_steps(data, "train/mean_return") == finite
         # A's scratch copy outlived it; a worker started again on A's data folder clears it
         scratch = tmp_path / "machine-a" / "work" / job.id
         assert scratch.exists()
