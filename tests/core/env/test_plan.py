@@ -140,19 +140,19 @@ def test_plan__fields_that_need_the_plan_are_refused_without_it_and_rejax_is_ref
 def test_usable_nodes__grid_form_equals_the_disc_test_at_every_node():
     """The planner's usable nodes are computed on the unpacked grid (no per-node selection of
     packed rows, which held gigabytes on a large map): the same answer as the env's own disc test
-    (``disc_overlaps_wall_bits``) at every node, narrow and wide robots, grids of 1 to 3 words."""
+    (``disc_overlaps_wall_bits``) at every node, narrow and wide robots, rows of 1 and 2 words."""
     from quicknav_core.env.bits import pack_rows
     from quicknav_core.env.dynamics import disc_overlaps_wall_bits
     from quicknav_core.env.plan import node_positions, usable_nodes
 
     rng = np.random.default_rng(0)
-    for g in (8, 40, 70):
+    for g in (8, 40):  # one and two packed words a row
         for reach, radius in ((0, 0.15), (0, 0.24), (1, 0.4), (2, 0.9)):
             walls = rng.random((g, g)) < 0.25
             walls[0, :] = walls[-1, :] = walls[:, 0] = walls[:, -1] = True
             rb = pack_rows(jnp.asarray(walls))
             room, r = jnp.float32(g * 0.5), jnp.float32(radius)
-            for k in (1, 5):
+            for k in (1, 3):
                 pts = node_positions(g, room, k).reshape(-1, 2)
                 each = jax.vmap(lambda p, rb=rb, r=r, reach=reach: disc_overlaps_wall_bits(p, rb, 0.5, r, reach))
                 want = ~np.asarray(each(pts)).reshape(g * k, g * k)
