@@ -3,9 +3,11 @@ the lookup of a trained job's run folder, and admission problems turned into a s
 
 from __future__ import annotations
 
+import asyncio
 from pathlib import Path
 
 import grpc
+from google.protobuf.message import DecodeError
 
 from quicknav_core.runtime import Runtime
 from quicknav_service import auth
@@ -29,6 +31,22 @@ class Refused(Exception):
         super().__init__(message)
         self.code = code
         self.message = message
+
+
+async def read_next(context: grpc.aio.ServicerContext, idle_s: float, message: str, closed: str):
+    """The stream's next message (or ``grpc.aio.EOF``). Bytes that are not a ``message`` in
+    protobuf's wire format are the client's mistake (INVALID_ARGUMENT, not INTERNAL); no message for
+    ``idle_s`` ends the stream with DEADLINE_EXCEEDED and ``closed`` (what the client does next)."""
+    try:
+        return await asyncio.wait_for(context.read(), timeout=idle_s)
+    except TimeoutError:
+        raise Refused(grpc.StatusCode.DEADLINE_EXCEEDED,
+                      f"no message for {idle_s:g} s (QUICKNAV_ROLLOUT_IDLE_S): {closed}") from None  # fmt: skip
+    except DecodeError:
+        raise Refused(grpc.StatusCode.INVALID_ARGUMENT,
+                      f"the message is not a {message} in protobuf's wire format (corrupt or"
+                      " truncated bytes, or another message type): send what the proto"
+                      " quicknav/v1/rollout.proto defines") from None  # fmt: skip
 
 
 def authorization(context: grpc.aio.ServicerContext) -> str | None:

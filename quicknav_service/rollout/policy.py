@@ -26,7 +26,14 @@ from quicknav_client.tensors import TensorError, decode, encode
 
 from quicknav_core.runtime import Runtime
 from quicknav_service import auth
-from quicknav_service.rollout.common import Refused, authenticate, bounded, is_plain_id, run_copy
+from quicknav_service.rollout.common import (
+    Refused,
+    authenticate,
+    bounded,
+    is_plain_id,
+    read_next,
+    run_copy,
+)
 from quicknav_service.settings import Settings
 
 log = logging.getLogger("quicknav.policy")
@@ -141,12 +148,8 @@ class PolicyServicer(pb_grpc.PolicyServiceServicer):
         idle = self.settings.rollout_idle_s
         try:
             while True:
-                try:
-                    msg = await asyncio.wait_for(context.read(), timeout=idle)
-                except TimeoutError:
-                    raise Refused(grpc.StatusCode.DEADLINE_EXCEEDED,
-                                  f"no message for {idle:g} s (QUICKNAV_ROLLOUT_IDLE_S): the stream was"
-                                  " closed; open a new one and send load") from None  # fmt: skip
+                msg = await read_next(context, idle, "quicknav.v1.PolicyRequest",
+                                      "the stream was closed; open a new one and send load")  # fmt: skip
                 if msg is grpc.aio.EOF:
                     return
                 kind = msg.WhichOneof("payload")

@@ -24,7 +24,14 @@ from quicknav_client.tensors import TensorError, decode, encode
 
 from quicknav_core.runtime import Runtime
 from quicknav_service import auth
-from quicknav_service.rollout.common import Refused, authenticate, bounded, is_plain_id, run_copy
+from quicknav_service.rollout.common import (
+    Refused,
+    authenticate,
+    bounded,
+    is_plain_id,
+    read_next,
+    run_copy,
+)
 from quicknav_service.rollout.start import StartRequest, admit_start, read_start
 from quicknav_service.settings import Settings
 
@@ -116,14 +123,8 @@ class RolloutServicer(pb_grpc.RolloutServiceServicer):
         idle = self.settings.rollout_idle_s
         try:
             while True:
-                try:
-                    msg = await asyncio.wait_for(context.read(), timeout=idle)
-                except TimeoutError:
-                    raise Refused(
-                        grpc.StatusCode.DEADLINE_EXCEEDED,
-                        f"no message for {idle:g} s (QUICKNAV_ROLLOUT_IDLE_S): the session was"
-                        " closed; open a new stream and send Start",
-                    ) from None
+                msg = await read_next(context, idle, "quicknav.v1.AgentMessage",
+                                      "the session was closed; open a new stream and send Start")  # fmt: skip
                 if msg is grpc.aio.EOF:
                     return
                 kind = msg.WhichOneof("payload")

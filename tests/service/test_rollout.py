@@ -204,6 +204,24 @@ def test_rollout__hostile_starts_are_invalid_argument_not_internal(server):
             assert "start.config" in e.value.details(), what
 
 
+@pytest.mark.parametrize("method,message", [("/quicknav.v1.RolloutService/Rollout", "AgentMessage"),
+                                            ("/quicknav.v1.PolicyService/Act", "PolicyRequest")])  # fmt: skip
+def test_streams__corrupt_protobuf_is_invalid_argument_and_the_server_serves_on(server, method, message):
+    """Bytes that are not the stream's message (a truncated varint, another message type's bytes)
+    are the client's mistake: INVALID_ARGUMENT naming the message, not INTERNAL."""
+    with grpc.insecure_channel(_target(server)) as channel:
+        raw = channel.stream_stream(method, request_serializer=lambda b: b,
+                                    response_deserializer=lambda b: b)  # fmt: skip
+        for junk in (b"\x0a\xff\xff\xff\xff\x0f", b"\x0a\x05\x01"):
+            with pytest.raises(grpc.RpcError) as e:
+                list(raw(iter([junk]), timeout=30))
+            assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT, e.value.details()
+            assert f"not a quicknav.v1.{message}" in e.value.details()
+    with RolloutClient(_target(server)) as rc:
+        rc.start(num_envs=N, config=CONFIG)
+        assert rc.step(np.zeros((N, 2), np.float32)).observations.shape[0] == N
+
+
 def test_rollout__policy_job_that_does_not_exist_is_not_found(server):
     rc = RolloutClient(_target(server))
     rc.start(num_envs=2, config=CONFIG, policy_job="no-such-job")
