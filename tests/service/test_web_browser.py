@@ -425,3 +425,37 @@ def test_browser__a_job_no_worker_can_run_says_why_it_waits(server, page, data_d
         page.screenshot(path=shots / "job-waiting.png", full_page=True)
     finally:
         httpx.post(f"{server}/jobs/{job.id}/cancel", headers=AUTH, json={})
+
+
+def test_browser__maps_form_sends_the_plain_image_fields(server, page, tmp_path):
+    """The Maps page's form carries what `quicknav maps upload` does for a plain image: resolution,
+    negate and both thresholds. A mid-grey room is unknown at the default thresholds and free with
+    free_thresh 0.6, as the server reads it."""
+    import numpy as np
+
+    from tests.service.test_maps import pgm
+
+    img = np.full((40, 40), 0, np.uint8)  # black: a wall all round
+    img[2:38, 2:38] = 128  # darkness 0.5: above the default free_thresh (0.196), below 0.65
+    (tmp_path / "grey.pgm").write_bytes(pgm(img))
+    page.goto(f"{server}/ui/maps")
+    page.wait_for_selector("#map-form")
+    page.set_input_files("#map-files", [tmp_path / "grey.pgm"])
+    page.fill("#map-name", "grey room")
+    page.fill("#map-resolution", "0.1")
+    page.fill("#map-occupied_thresh", "0.9")
+    page.fill("#map-free_thresh", "0.6")
+    page.click("#upload")
+    page.wait_for_selector("#map-uploaded")
+    (m,) = [m for m in httpx.get(f"{server}/maps", headers=AUTH).json()["data"] if m["name"] == "grey room"]
+    assert m["resolution"] == 0.1 and m["unknown_fraction"] == 0, m
+    assert m["free_fraction"] == pytest.approx(36 * 36 / (40 * 40)), m
+    # a threshold out of its range is the server's 422, shown on the page, nothing stored
+    page.set_input_files("#map-files", [tmp_path / "grey.pgm"])
+    page.fill("#map-resolution", "0.1")
+    page.fill("#map-free_thresh", "1.5")
+    page.click("#upload")
+    page.wait_for_selector("#map-errors .error-box")
+    assert "free_thresh" in page.inner_text("#map-errors")
+    assert httpx.get(f"{server}/maps", headers=AUTH).json()["count"] == 1
+    assert httpx.delete(f"{server}/maps/{m['id']}", headers=AUTH).status_code == 204

@@ -688,6 +688,8 @@ async function mapsPage() {
   const name = h("input", { id: "map-name", name: "name", autocomplete: "off", placeholder: "the image's name" });
   const resolution = h("input", { id: "map-resolution", name: "resolution", inputmode: "decimal", placeholder: "a .yaml names its own" });
   const negate = h("input", { type: "checkbox", id: "map-negate", name: "negate" });
+  const occupied = h("input", { id: "map-occupied_thresh", name: "occupied_thresh", inputmode: "decimal", placeholder: "0.65" });
+  const free = h("input", { id: "map-free_thresh", name: "free_thresh", inputmode: "decimal", placeholder: "0.196" });
   const errors = h("div", { id: "map-errors" });
   const field = (id, label, help, control) => h("div", { class: "field" },
     h("label", { for: id }, label, h("small", {}, help)), control);
@@ -696,6 +698,8 @@ async function mapsPage() {
     field("map-name", "Name", "a label", name),
     field("map-resolution", "Resolution", "metres per pixel: plain images only", resolution),
     field("map-negate", "Negate", "plain images: white is occupied", negate),
+    field("map-occupied_thresh", "Occupied above", "plain images: darkness from 0 to 1 above which a pixel is a wall", occupied),
+    field("map-free_thresh", "Free below", "plain images: darkness from 0 to 1 below which a pixel is free", free),
     errors, h("button", { class: "primary", type: "submit", id: "upload" }, "Upload map"));
   const refresh = async () => {
     const maps = await api("/maps");
@@ -710,6 +714,8 @@ async function mapsPage() {
     if (name.value.trim()) data.append("name", name.value.trim());
     if (resolution.value.trim()) data.append("resolution", resolution.value.trim());
     if (negate.checked) data.append("negate", "true");
+    if (occupied.value.trim()) data.append("occupied_thresh", occupied.value.trim());
+    if (free.value.trim()) data.append("free_thresh", free.value.trim());
     const button = form.querySelector("#upload");
     button.disabled = true;
     try {
