@@ -96,9 +96,10 @@ def test_compilation_cache__one_setup_for_the_cli_and_the_workers(tmp_path, monk
     cache rather than no run."""
     import jax
 
-    from quicknav_core.compile_cache import enable_compilation_cache
+    from quicknav_core.compile_cache import MIN_COMPILE_TIME_S, enable_compilation_cache
 
     before = jax.config.jax_compilation_cache_dir
+    min_time = jax.config.jax_persistent_cache_min_compile_time_secs
     try:
         monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR", raising=False)
         assert enable_compilation_cache(tmp_path / "mine") == tmp_path / "mine"
@@ -110,5 +111,15 @@ def test_compilation_cache__one_setup_for_the_cli_and_the_workers(tmp_path, monk
         (tmp_path / "file").write_text("")
         assert enable_compilation_cache(tmp_path / "file" / "below") is None
         assert enable_compilation_cache(None) is None
+        # the smallest program worth a file: ours, unless the environment names one (as JAX's own
+        # variable does; this test run sets it so its hundreds of processes share small programs)
+        monkeypatch.delenv("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", raising=False)
+        enable_compilation_cache(tmp_path / "mine")
+        assert jax.config.jax_persistent_cache_min_compile_time_secs == MIN_COMPILE_TIME_S
+        monkeypatch.setenv("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.1")
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.1)
+        enable_compilation_cache(tmp_path / "mine")
+        assert jax.config.jax_persistent_cache_min_compile_time_secs == 0.1
     finally:
         jax.config.update("jax_compilation_cache_dir", before)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", min_time)
