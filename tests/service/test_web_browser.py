@@ -43,9 +43,10 @@ def data_dir(tmp_path_factory):
 @pytest.fixture(scope="module")
 def server(data_dir):
     port = free_port()
+    # the workers do not export trained policies (the test run's default, conftest.py): the job
+    # page's policy download is the seeded trained demo's, exported once per test run
     proc = quicknav_process(["serve", "--port", str(port), "--no-grpc"],
-                            QUICKNAV_DATA_DIR=str(data_dir), QUICKNAV_API_TOKEN=TOKEN,
-                            QUICKNAV_EXPORT_POLICIES="true")  # fmt: skip (the job page offers the policy)
+                            QUICKNAV_DATA_DIR=str(data_dir), QUICKNAV_API_TOKEN=TOKEN)  # fmt: skip
     url = f"http://127.0.0.1:{port}"
     try:
         wait_until_up(url, proc)

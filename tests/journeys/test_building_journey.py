@@ -1,0 +1,104 @@
+"""docs/building.md's journey, walked from the page's own text: the building preset trained (the
+test run's shorter training of the same preset stands in), evaluated on the shipped office map it
+never saw with nothing but the map, exported with the map, and driven by the SDK's Navigator.
+
+Its own module, so that the test run's one building training (about 4 minutes on 2 cores) runs
+beside README's journeys rather than after them.
+"""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from tests.journeys.readme import ROOT, Runner
+from tests.journeys.test_readme_journeys import walk
+from tests.service.conftest import free_port
+
+
+@pytest.fixture
+def runner(tmp_path):
+    r = Runner(workdir=tmp_path, port=free_port(), grpc_port=free_port())
+    yield r
+    r.stop()
+
+
+@pytest.mark.slow  # docs/building.md's journey with the test run's short building training: ~1-2 min
+def test_journey__drive_a_building(runner, trained_building_run):
+    """Train (the test run's shorter training of the same preset stands in), evaluate on the
+    shipped office map it never saw with nothing but the map, export with the map, and drive one
+    step of the exported policy with the SDK's Navigator (onnxruntime and SciPy, no JAX)."""
+    from tests.trained import BUILDING_TEST_STEPS
+
+    (runner.workdir / "examples").symlink_to(ROOT / "examples")  # the page's paths, from a checkout
+    runner.trained["uv run quicknav train --preset building"] = trained_building_run
+    ran = [r[2] for r in walk(runner, "building")]
+    assert [r.code for r in ran] == [0] * 4, "\n\n".join(map(str, ran))
+    _, evaluated, exported, navigated = ran
+    # the grid and the step limit followed the map at the policy's 0.5 m cells
+    result = json.loads((runner.workdir / "office" / "eval.json").read_text())
+    env = result["env_config"]
+    assert env["room_size"] / env["grid_size"] == 0.5 and env["grid_size"] >= 42, env
+    assert env["max_steps"] > 300 and f"step limit {env['max_steps']}" in evaluated.stdout, str(evaluated)
+    # the office's 1 m doors and 0.1 m walls lose free space at 0.5 m cells: said, with the share
+    assert "free space" in evaluated.stderr and "%" in evaluated.stderr, str(evaluated)
+    # a policy that learned: a random one reaches none of these goals (test_navigate's baseline)
+    m = result["metrics"]
+    assert m["success_rate"] >= 0.2, (f"the building preset after {BUILDING_TEST_STEPS:,} steps"
+                                      f" reached {m['success_rate']:.0%} of office goals")  # fmt: skip
+    doc = json.loads((runner.workdir / "robot" / "policy.json").read_text())
+    assert doc["map"]["cell_m"] == 0.5 and (runner.workdir / "robot" / doc["map"]["file"]).is_file(), doc["map"]
+    left, right = (float(w.split()[1]) for w in navigated.stdout.split(";")[0].split(",")[:2])
+    assert abs(left) <= 1.0 and abs(right) <= 1.0 and "reached: False" in navigated.stdout, str(navigated)
+    # the robot's side, closed loop: the NumPy twin drives the exported policy through Navigator
+    driven = drive_with_navigator(runner.workdir / "robot", env, episodes=20)
+    assert driven["max_obs_error"] < 1e-4, driven  # Navigator's observation is the env's, every step
+    assert driven["success_rate"] >= 0.2, driven
+
+
+def drive_with_navigator(folder, env_config: dict, episodes: int) -> dict:
+    """Office episodes driven by an exported policy through the SDK's ``Navigator`` (onnxruntime,
+    SciPy's Dijkstra on ``map.npz``) in the NumPy twin, without unmapped obstacles: the twin moves
+    the robot and casts the lidar; the Navigator sees only the scan, the map-frame pose and the
+    goal. Its observation is compared with the twin's own at every step."""
+    import math
+
+    import numpy as np
+    from quicknav_client.navigate import Navigator
+
+    from quicknav_core.config import EnvConfig
+    from quicknav_core.env.constants import HIT_NONE
+    from quicknav_core.env.numpy_env import QuickNavNumpyEnv, cast_lidar_np
+
+    nav = Navigator.load(folder)
+    angles = np.asarray(nav.policy.manifest["lidar"]["beam_angles_rad"], np.float32)
+    cfg = EnvConfig(**{**env_config, "obstacles": None})
+    twin = QuickNavNumpyEnv(cfg, split="test")
+    corner, cell = np.asarray(nav.frame["grid_corner_in_map"]), float(nav.frame["cell_m"])
+    free = np.argwhere(nav.planner.usable)
+    rng = np.random.default_rng(0)
+    worst, reached, steps = 0.0, 0, 0
+    for _ in range(episodes):
+        while True:  # a start and a goal at cell centres the robot fits at, 3 m or more apart
+            a, b = free[rng.integers(len(free), size=2)]
+            start, goal = (a[::-1] + 0.5) * cell, (b[::-1] + 0.5) * cell
+            if np.linalg.norm(start - goal) >= 3.0:
+                break
+        obs = twin.load(nav.planner.walls, start, rng.uniform(-math.pi, math.pi), goal)
+        nav.set_goal(goal + corner)
+        done = False
+        while not done:
+            s = twin.snapshot()
+            # what a real lidar reports: the walls only (the goal is no object; no return: inf)
+            ranges, hits = cast_lidar_np(s["pos"], s["theta"], np.full(2, -1e4, np.float32), s["walls"],
+                                         angles, cell, cfg.lidar_max_range, cfg.goal_radius)  # fmt: skip
+            scan = np.where(hits == HIT_NONE, np.inf, ranges)
+            pose = (float(s["pos"][0] + corner[0]), float(s["pos"][1] + corner[1]), float(s["theta"]))
+            mine = nav.observation(scan, pose)
+            worst = max(worst, float(np.abs(mine - obs).max()))
+            left, right = nav.policy.act_on(mine)
+            obs, _, terminated, truncated, info = twin.step(np.array([left, right]) / cfg.max_wheel_speed)
+            done, steps = terminated or truncated, steps + 1
+        reached += bool(info["goal_reached"])
+    return {"success_rate": reached / episodes, "max_obs_error": worst, "steps": steps}
