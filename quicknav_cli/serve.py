@@ -71,11 +71,15 @@ def serve(
                   f" artifacts: {settings.artifacts_url or settings.artifacts_dir},"
                   f" in-process workers: {settings.max_concurrent_jobs if settings.embedded_worker else 0}",
                   soft_wrap=True)  # fmt: skip
+    from quicknav_service.auth import make_limiter
     from quicknav_service.runtime import service_runtime
 
     # this process's one runtime (room banks, uploaded maps, compiled programs): the API's checks
     # and the Rollout streams share it
     runtime = service_runtime(settings)
+    # one count of failed authentications for the API and the gRPC streams of this process
+    # (in Redis, shared by every process of the fleet, when the service runs on Redis)
+    limiter = make_limiter(settings)
     rollout = announcer = None
     if settings.grpc_enabled:
         import socket
@@ -85,7 +89,8 @@ def serve(
         # the API process starts JAX only when a rollout stream needs it
         rollout, announcer = start_rollout(settings, make_store(settings), settings.grpc_port,
                                            f"serve-{socket.gethostname()}-{os.getpid()}",
-                                           probe_device=False, runtime=runtime)  # fmt: skip
+                                           probe_device=False, runtime=runtime,
+                                           auth_limiter=limiter)  # fmt: skip
     # HTTPS when QUICKNAV_TLS_CERT/_KEY are set (uvicorn terminates TLS)
     tls = ({"ssl_certfile": str(settings.tls_cert), "ssl_keyfile": str(settings.tls_key)}
            if settings.tls_cert else {})  # fmt: skip
@@ -102,7 +107,7 @@ def serve(
                         port=settings.port, workers=api_workers, log_level="warning",
                         **uvicorn_options(settings, api_workers), **tls)  # fmt: skip
         else:
-            uvicorn.run(create_app(settings, runtime=runtime), host=settings.host, port=settings.port,
+            uvicorn.run(create_app(settings, runtime=runtime, auth_limiter=limiter), host=settings.host, port=settings.port,
                         log_level="info", **uvicorn_options(settings), **tls)  # fmt: skip
     finally:
         if announcer is not None:
@@ -198,13 +203,14 @@ def worker(
             rollout.stop()
 
 
-def start_rollout(settings, store, port: int, name: str, probe_device: bool = True, runtime=None):
+def start_rollout(settings, store, port: int, name: str, probe_device: bool = True, runtime=None,
+                  auth_limiter=None):
     """The gRPC Rollout server of this process, announced in the store for the API to list."""
     from quicknav_service.rollout.announce import EndpointAnnouncer, advertised_address
     from quicknav_service.rollout.server import BackgroundServer
 
     try:
-        rollout = BackgroundServer(settings, port=port, runtime=runtime).start()
+        rollout = BackgroundServer(settings, port=port, runtime=runtime, auth_limiter=auth_limiter).start()
     except OSError as e:
         fail(str(e))
     address = advertised_address(settings.rollout_advertise, rollout.port, settings.host)

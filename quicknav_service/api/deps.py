@@ -108,7 +108,7 @@ def require_token(
                              " browser session", headers={"WWW-Authenticate": "Bearer"})  # fmt: skip
 
 
-async def require_metrics_token(
+def require_metrics_token(
     request: Request,
     settings: SettingsDep,
     credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)],

@@ -17,7 +17,7 @@ from quicknav_service.api.metrics import RequestMetrics
 from quicknav_service.api.middleware import BodyLimit, CrossSiteGuard, SecurityHeaders, TrustedHosts
 from quicknav_service.api.routes import artifacts, events, jobs, maps, ops
 from quicknav_service.api.routes.events import StreamSlots
-from quicknav_service.auth import FailureLimiter
+from quicknav_service.auth import Limiter, make_limiter
 from quicknav_service.jobs.models import JobStore
 from quicknav_service.runtime import service_runtime
 from quicknav_service.settings import Settings, get_settings, make_store
@@ -49,7 +49,7 @@ def api_version() -> str:
 
 def create_app(
     settings: Settings | None = None, store: JobStore | None = None, start_workers: bool | None = None,
-    runtime: Runtime | None = None,
+    runtime: Runtime | None = None, auth_limiter: Limiter | None = None,
 ) -> FastAPI:
     """The API; with ``start_workers`` (default: settings.embedded_worker) in-process workers run too."""
     settings = settings or get_settings()
@@ -85,7 +85,9 @@ def create_app(
     app.state.store = store
     # this process's room banks, uploaded maps and artifact store, for every request's checks
     app.state.runtime = runtime if runtime is not None else service_runtime(settings)
-    app.state.auth_limiter = FailureLimiter(settings.auth_failures_max, settings.auth_failure_window_s)
+    # failed authentications per client address: one count for this process's doors (REST and,
+    # under `quicknav serve`, gRPC), shared by the fleet through Redis when the store is Redis
+    app.state.auth_limiter = auth_limiter if auth_limiter is not None else make_limiter(settings)
     app.state.streams = StreamSlots(settings.sse_max_per_client, settings.sse_max_total)
     app.state.event_hub = EventHub(store)
     app.state.workers = []

@@ -66,14 +66,15 @@ def peer_host(context) -> str:
     return rest.rsplit(":", 1)[0] if kind == "ipv4" else peer
 
 
-async def authenticate(settings: Settings, limiter: auth.FailureLimiter, context) -> None:
+async def authenticate(settings: Settings, limiter: auth.Limiter, context) -> None:
     """Abort the call unless it carries ``authorization: Bearer <token>`` (when the server has a
-    token); failures count per client address, as for REST."""
+    token); failures count per client address in the limiter REST uses too (off the event loop:
+    it may ask Redis)."""
     token = settings.api_token
     if not token:
         return
     client = peer_host(context)
-    wait = limiter.retry_after(client)
+    wait = await asyncio.to_thread(limiter.retry_after, client)
     if wait is not None:
         await context.abort(
             grpc.StatusCode.RESOURCE_EXHAUSTED,
@@ -81,7 +82,7 @@ async def authenticate(settings: Settings, limiter: auth.FailureLimiter, context
             " (QUICKNAV_AUTH_FAILURES_MAX per QUICKNAV_AUTH_FAILURE_WINDOW_S)",
         )
     if not auth.token_matches(authorization(context), token):
-        limiter.failed(client)
+        await asyncio.to_thread(limiter.failed, client)
         await context.abort(
             grpc.StatusCode.UNAUTHENTICATED,
             "this server requires the API token: send call metadata"

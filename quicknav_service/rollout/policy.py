@@ -130,14 +130,13 @@ class PolicyServicer(pb_grpc.PolicyServiceServicer):
     """Serves ``PolicyService.Act``; one instance per server, any number of streams."""
 
     def __init__(self, settings: Settings, executor: ThreadPoolExecutor | None = None,
-                 runtime: Runtime | None = None):  # fmt: skip
+                 runtime: Runtime | None = None, auth_limiter: auth.Limiter | None = None):  # fmt: skip
         from quicknav_service.runtime import service_runtime
 
         self.settings = settings
         self.runtime = runtime if runtime is not None else service_runtime(settings)
         self.executor = executor or ThreadPoolExecutor(max_workers=4, thread_name_prefix="policy")
-        self.auth_limiter = auth.FailureLimiter(settings.auth_failures_max,
-                                                settings.auth_failure_window_s)  # fmt: skip
+        self.auth_limiter = auth_limiter if auth_limiter is not None else auth.make_limiter(settings)
         self.policies: dict[str, LoadedPolicy] = {}
         self._loading = threading.Lock()
         self.active_sessions = 0

@@ -10,6 +10,7 @@ import grpc
 from quicknav_client.proto.quicknav.v1 import rollout_pb2_grpc as pb_grpc
 
 from quicknav_core.runtime import Runtime
+from quicknav_service import auth
 from quicknav_service.rollout.policy import PolicyServicer
 from quicknav_service.rollout.servicer import RolloutServicer
 from quicknav_service.runtime import service_runtime
@@ -38,6 +39,7 @@ def server_credentials(settings: Settings) -> grpc.ServerCredentials | None:
 async def start_server(
     settings: Settings, host: str | None = None, port: int | None = None,
     runtime: Runtime | None = None,
+    auth_limiter: auth.Limiter | None = None,
 ) -> tuple[grpc.aio.Server, int, RolloutServicer]:
     """A started grpc.aio server bound to host:port (port 0 picks a free one); returns the port.
 
@@ -57,10 +59,12 @@ async def start_server(
     )
     # the process's runtime (banks, uploaded maps, compiled programs), shared by both services
     runtime = runtime if runtime is not None else service_runtime(settings)
-    servicer = RolloutServicer(settings, runtime=runtime)
+    # one count of failed authentications for both services (and the API's, when it is given)
+    limiter = auth_limiter if auth_limiter is not None else auth.make_limiter(settings)
+    servicer = RolloutServicer(settings, runtime=runtime, auth_limiter=limiter)
     pb_grpc.add_RolloutServiceServicer_to_server(servicer, server)
     # trained policies for robots (Load, then Act), on the same port, auth and limits
-    servicer.policy_servicer = PolicyServicer(settings, runtime=runtime)
+    servicer.policy_servicer = PolicyServicer(settings, runtime=runtime, auth_limiter=limiter)
     pb_grpc.add_PolicyServiceServicer_to_server(servicer.policy_servicer, server)
     health_servicer = health.aio.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
@@ -98,9 +102,10 @@ class BackgroundServer:
     """The Rollout server on its own event loop in a daemon thread (for `quicknav serve`, tests)."""
 
     def __init__(self, settings: Settings, host: str | None = None, port: int | None = None,
-                 runtime: Runtime | None = None):  # fmt: skip
+                 runtime: Runtime | None = None, auth_limiter: auth.Limiter | None = None):  # fmt: skip
         self.settings = settings
         self.runtime = runtime
+        self.auth_limiter = auth_limiter
         self._loop = asyncio.new_event_loop()
         self._ready = threading.Event()
         self._error: BaseException | None = None
@@ -115,7 +120,7 @@ class BackgroundServer:
         asyncio.set_event_loop(self._loop)
         try:
             self._server, self.port, self.servicer = self._loop.run_until_complete(
-                start_server(self.settings, host, port, self.runtime)
+                start_server(self.settings, host, port, self.runtime, self.auth_limiter)
             )
         except BaseException as e:  # reported to the starting thread
             self._error = e

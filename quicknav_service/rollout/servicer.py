@@ -93,7 +93,7 @@ class RolloutServicer(pb_grpc.RolloutServiceServicer):
     """Serves ``RolloutService.Rollout``; one instance per server, any number of streams."""
 
     def __init__(self, settings: Settings, executor: ThreadPoolExecutor | None = None,
-                 runtime: Runtime | None = None):  # fmt: skip
+                 runtime: Runtime | None = None, auth_limiter: auth.Limiter | None = None):  # fmt: skip
         from quicknav_service.runtime import service_runtime
 
         self.settings = settings
@@ -103,8 +103,7 @@ class RolloutServicer(pb_grpc.RolloutServiceServicer):
             max_workers=min(32, settings.rollout_max_sessions + 2), thread_name_prefix="rollout"
         )
         self.active_sessions = 0
-        self.auth_limiter = auth.FailureLimiter(settings.auth_failures_max,
-                                                settings.auth_failure_window_s)  # fmt: skip
+        self.auth_limiter = auth_limiter if auth_limiter is not None else auth.make_limiter(settings)
         self.env_steps_served = 0  # env steps (steps x envs) over every stream, for /metrics
         self._handlers = {
             "start": self._start,

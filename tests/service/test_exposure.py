@@ -382,3 +382,87 @@ def test_secrets__never_in_logs_answers_or_readiness(tmp_path):
     for text in [log, *answers]:
         assert password not in text and TOKEN not in text, text[-3000:]
     assert "redis://:***@127.0.0.1" in log  # the store is named, its password is not
+
+
+# --------------------------------------------------------------------------- one count, every door
+LIMITER_REDIS = "redis://127.0.0.1:6379/10"  # this test's own DB index
+
+
+def test_auth__one_count_for_rest_rollout_and_policy_in_quicknav_serve(tmp_path):
+    """`quicknav serve` gives its three doors one limiter: wrong tokens spread over REST, the
+    Rollout stream and the Policy stream add up to QUICKNAV_AUTH_FAILURES_MAX (each door used to
+    keep its own count, which gave three times the documented guesses)."""
+    import grpc
+    from quicknav_client.proto.quicknav.v1 import rollout_pb2 as pb
+    from quicknav_client.proto.quicknav.v1 import rollout_pb2_grpc as pb_grpc
+
+    from tests.service.conftest import quicknav_process, wait_until_up
+
+    http_port, grpc_port = free_port(), free_port()
+    proc = quicknav_process(["serve", "--port", str(http_port), "--grpc-port", str(grpc_port)],
+                            QUICKNAV_DATA_DIR=str(tmp_path / "data"), QUICKNAV_API_TOKEN=TOKEN,
+                            QUICKNAV_AUTH_FAILURES_MAX="6", QUICKNAV_EMBEDDED_WORKER="false")  # fmt: skip
+    url = f"http://127.0.0.1:{http_port}"
+
+    def rest(token: str) -> int:
+        return httpx.get(f"{url}/jobs", headers={"Authorization": f"Bearer {token}"}).status_code
+
+    def stream(service: str, token: str) -> grpc.StatusCode:
+        with grpc.insecure_channel(f"127.0.0.1:{grpc_port}") as channel:
+            if service == "rollout":
+                calls = pb_grpc.RolloutServiceStub(channel).Rollout
+                first = pb.AgentMessage(start=pb.Start(num_envs=1, config_json='{"grid_size": 0}'))
+            else:
+                calls = pb_grpc.PolicyServiceStub(channel).Act
+                first = pb.PolicyRequest(load=pb.LoadPolicy(job_id="no-such-job"))
+            with pytest.raises(grpc.RpcError) as e:
+                list(calls(iter([first]), metadata=(("authorization", f"Bearer {token}"),), timeout=30))
+        return e.value.code()
+
+    try:
+        wait_until_up(url, proc)
+        assert [rest("nope"), rest("nope")] == [401, 401]
+        for service in ("rollout", "policy"):
+            codes = [stream(service, "nope") for _ in range(2)]
+            assert codes == [grpc.StatusCode.UNAUTHENTICATED] * 2, (service, codes)
+        # six failures in all: every door now refuses this address, even with the right token
+        assert rest(TOKEN) == 429
+        assert stream("rollout", TOKEN) == grpc.StatusCode.RESOURCE_EXHAUSTED
+        assert stream("policy", TOKEN) == grpc.StatusCode.RESOURCE_EXHAUSTED
+    finally:
+        proc.terminate()
+        proc.wait(30)
+
+
+def test_auth__on_redis_the_count_is_shared_by_every_api_process_and_survives_an_outage(tmp_path):
+    """With the service on Redis, two API processes (two apps, as uvicorn's workers or two
+    machines run them) share one count per address; while Redis is unreachable each process
+    still counts on its own."""
+    import redis
+
+    from quicknav_service.auth import RedisFailureLimiter, make_limiter
+
+    redis.Redis.from_url(LIMITER_REDIS).flushdb()
+    settings = Settings(data_dir=tmp_path, embedded_worker=False, api_token=TOKEN, redis_url=LIMITER_REDIS,
+                        auth_failures_max=5, auth_failure_window_s=30)  # fmt: skip
+    assert isinstance(make_limiter(settings), RedisFailureLimiter)
+    apps = [create_app(settings, SQLiteJobStore(tmp_path / f"jobs-{i}.db"), start_workers=False) for i in (0, 1)]
+    try:
+        with TestClient(apps[0]) as a, TestClient(apps[1]) as b:
+            wrong = {"Authorization": "Bearer nope"}
+            assert [a.get("/jobs", headers=wrong).status_code for _ in range(3)] == [401] * 3
+            assert [b.get("/jobs", headers=wrong).status_code for _ in range(2)] == [401] * 2
+            for client in (a, b):  # five in all, across the two processes
+                r = client.get("/jobs", headers={"Authorization": f"Bearer {TOKEN}"})
+                assert r.status_code == 429 and 1 <= int(r.headers["Retry-After"]) <= 30, r.text
+        keys = redis.Redis.from_url(LIMITER_REDIS).keys("quicknav:auth-failures:*")
+        assert len(keys) == 1 and 0 < redis.Redis.from_url(LIMITER_REDIS).pttl(keys[0]) <= 31_000
+    finally:
+        redis.Redis.from_url(LIMITER_REDIS).flushdb()
+
+    # Redis gone: the limiter counts in this process, and says so in the log
+    down = RedisFailureLimiter(f"redis://127.0.0.1:{free_port()}/0", limit=2, window_s=30)
+    assert down.retry_after("10.0.0.1") is None
+    down.failed("10.0.0.1")
+    down.failed("10.0.0.1")
+    assert 1 <= down.retry_after("10.0.0.1") <= 30 and down.retry_after("10.0.0.2") is None
