@@ -20,7 +20,9 @@ import json
 import math
 import re
 import tempfile
+import threading
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import Any
@@ -44,14 +46,51 @@ ID_LENGTH = 16  # hex digits of the digest that names a map
 SUGGESTED_CELL_M = 0.5  # the env's default cell (room_size 8 m / grid_size 16)
 
 
-class MapUploadError(Exception):
-    """An upload that cannot be stored: ``field`` names the form field, ``status`` the HTTP code."""
+# memory one uploaded pixel takes while it is read as a job will (decoded image, thresholds,
+# masks, the preview): 22 bytes measured for a 5000 x 5000 PNG (peak RSS growth, 2-core Intel VM)
+DECODE_BYTES_PER_PIXEL = 24
+DECODE_WAIT_S = 30.0  # an upload waits this long for memory held by others, then 503
 
-    def __init__(self, field: str, message: str, status: int = 422):
+
+class MapUploadError(Exception):
+    """An upload that cannot be stored: ``field`` names the form field, ``status`` the HTTP code
+    (``retry_after_s`` with 503: the server is busy, not the file wrong)."""
+
+    def __init__(self, field: str, message: str, status: int = 422, retry_after_s: int | None = None):
         super().__init__(message)
         self.field = field
         self.message = message
         self.status = status
+        self.retry_after_s = retry_after_s
+
+
+class DecodeBudget:
+    """The memory an API process gives to reading uploaded maps at once (QUICKNAV_MAP_DECODE_MB):
+    an upload holds its image's share while it is decoded, and waits while others hold the rest.
+    One upload larger than the whole budget may run alone."""
+
+    def __init__(self, total_bytes: int, wait_s: float = DECODE_WAIT_S):
+        self.total = total_bytes
+        self.wait_s = wait_s
+        self.held = 0
+        self._cond = threading.Condition()
+
+    @contextmanager
+    def hold(self, nbytes: int, what: str):
+        need = min(nbytes, self.total)
+        with self._cond:
+            if not self._cond.wait_for(lambda: self.held + need <= self.total, timeout=self.wait_s):
+                raise MapUploadError(
+                    "files", f"{what}: other uploads are being read and hold the memory this server"
+                    f" gives to reading maps ({self.total / 2**20:,.0f} MB, QUICKNAV_MAP_DECODE_MB);"
+                    " retry shortly", status=503, retry_after_s=5)  # fmt: skip
+            self.held += need
+        try:
+            yield
+        finally:
+            with self._cond:
+                self.held -= need
+                self._cond.notify_all()
 
 
 @dataclass(frozen=True)
@@ -123,9 +162,10 @@ def _canonical(files: list[UploadedFile], resolution: float | None, negate: bool
 class MapLibrary:
     """The uploaded maps of one artifact store."""
 
-    def __init__(self, artifacts: ArtifactStore, max_pixels: int):
+    def __init__(self, artifacts: ArtifactStore, max_pixels: int, budget: DecodeBudget | None = None):
         self.artifacts = artifacts
         self.max_pixels = max_pixels
+        self.budget = budget if budget is not None else DecodeBudget(max_pixels * DECODE_BYTES_PER_PIXEL)
 
     # ---------------------------------------------------------------- adding
     def add(self, files: list[UploadedFile], name: str | None = None, resolution: float | None = None,
@@ -134,7 +174,6 @@ class MapLibrary:
         """Check an upload by reading it as the env will, store it; its metadata."""
         from PIL import Image
 
-        from quicknav_core.env.render import map_picture, map_picture_step
 
         for field, v in (("resolution", resolution), ("occupied_thresh", occupied_thresh),
                          ("free_thresh", free_thresh)):  # fmt: skip
@@ -164,6 +203,16 @@ class MapLibrary:
             raise MapUploadError("files", f"{image_name}: {width} x {height} pixels is more than the"
                                  f" {self.max_pixels:,} this server takes (QUICKNAV_MAX_MAP_PIXELS);"
                                  " save the map at a coarser resolution", status=413)  # fmt: skip
+        with self.budget.hold(width * height * DECODE_BYTES_PER_PIXEL, image_name):
+            return self._store(files, name, image_name, yaml_bytes, suffix, image_bytes, width, height)
+
+    def _store(self, files: list[UploadedFile], name: str | None, image_name: str, yaml_bytes: bytes,
+               suffix: str, image_bytes: bytes, width: int, height: int) -> dict[str, Any]:  # fmt: skip
+        """Read a checked upload as a job will (within the decode budget) and store it."""
+        from PIL import Image
+
+        from quicknav_core.env.render import map_picture, map_picture_step
+
         with tempfile.TemporaryDirectory() as tmp:
             folder = Path(tmp)
             (folder / "map.yaml").write_bytes(yaml_bytes)

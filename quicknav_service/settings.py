@@ -102,6 +102,10 @@ class Settings(BaseSettings):
     max_map_pixels: int = Field(
         25_000_000, ge=1, le=64_000_000, description="most pixels an uploaded map may have"
     )
+    map_decode_mb: int = Field(
+        1024, ge=16, le=1_048_576, description="memory an API process gives to reading uploaded maps"
+        " at once (about 24 bytes per pixel); an upload that finds it held waits up to 30 s, then 503",
+    )
     export_policies: bool = Field(
         True, description="every succeeded train job exports its policy (policy.onnx +"
         " policy.json, `quicknav export`); false skips that step (a few seconds per job)",

@@ -19,6 +19,7 @@ from quicknav_service.api.routes import artifacts, events, jobs, maps, ops
 from quicknav_service.api.routes.events import StreamSlots
 from quicknav_service.auth import Limiter, make_limiter
 from quicknav_service.jobs.models import JobStore
+from quicknav_service.maps import DecodeBudget
 from quicknav_service.runtime import service_runtime
 from quicknav_service.settings import Settings, get_settings, make_store
 from quicknav_service.web import routes as web
@@ -88,6 +89,8 @@ def create_app(
     # failed authentications per client address: one count for this process's doors (REST and,
     # under `quicknav serve`, gRPC), shared by the fleet through Redis when the store is Redis
     app.state.auth_limiter = auth_limiter if auth_limiter is not None else make_limiter(settings)
+    # uploaded maps are decoded within one memory budget per process (concurrent uploads wait)
+    app.state.map_decode_budget = DecodeBudget(settings.map_decode_mb * 2**20)
     app.state.streams = StreamSlots(settings.sse_max_per_client, settings.sse_max_total)
     app.state.event_hub = EventHub(store)
     app.state.workers = []

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import json
+from pathlib import Path
 
 import httpx
 import numpy as np
@@ -408,3 +409,58 @@ def test_sweep_job_on_an_uploaded_map__its_trial_batches_read_it_on_the_worker(s
     from quicknav_service.maps import maps_named
 
     assert all(maps_named(b["config"]) == {meta["id"]} for b in batches)  # what DELETE's 409 reads
+
+
+def test_upload__concurrent_big_images_are_read_within_the_decode_budget(tmp_path):
+    """Six 4000 x 4000 PNGs uploaded at once to a `quicknav serve` with QUICKNAV_MAP_DECODE_MB=450:
+    each holds its share (24 bytes a pixel, 366 MB) while it is read, so they are read one after
+    another and the API's peak memory grows by about one image's worth, not six (the adversarial
+    run saw 2.8 GB for six 5000 x 5000 ones)."""
+    import concurrent.futures
+
+    from tests.service.conftest import free_port, quicknav_process, wait_until_up
+
+    port = free_port()
+    proc = quicknav_process(["serve", "--port", str(port), "--no-grpc"], QUICKNAV_DATA_DIR=str(tmp_path),
+                            QUICKNAV_EMBEDDED_WORKER="false", QUICKNAV_MAP_DECODE_MB="450")  # fmt: skip
+    url = f"http://127.0.0.1:{port}"
+
+    def peak_mb() -> float:
+        status = Path(f"/proc/{proc.pid}/status").read_text()
+        return int(status.split("VmHWM:")[1].split()[0]) / 1024
+
+    try:
+        wait_until_up(url, proc)
+        pictures = []
+        for k in range(6):  # six different maps (the same files would be one map)
+            img = np.full((4000, 4000), 254, np.uint8)
+            img[:, : 3 + k] = 0
+            img[:3] = 0
+            pictures.append(png(img))
+        # warm: the first upload's imports and the preview code, before the baseline
+        assert upload(url, [("small.png", png(room_picture()))], resolution=RES).status_code == 201
+        before = peak_mb()
+        with concurrent.futures.ThreadPoolExecutor(6) as pool:
+            answers = list(pool.map(lambda b: httpx.post(f"{url}/maps", files=[("files", ("big.png", b))],
+                                                         data={"resolution": "0.05"}, timeout=120),
+                                    pictures))  # fmt: skip
+        assert [a.status_code for a in answers] == [201] * 6, [a.text[:300] for a in answers]
+        grown = peak_mb() - before
+        assert grown < 800, f"peak memory grew by {grown:.0f} MB for six 16-Mpixel maps"
+    finally:
+        proc.terminate()
+        proc.wait(30)
+
+
+def test_upload__waits_for_the_decode_budget_then_503_with_retry_after(server):
+    """While other uploads hold the memory for reading maps, an upload waits; past the wait it is
+    503 with Retry-After, naming the setting, and nothing is stored."""
+    budget = server.app.state.map_decode_budget
+    budget.wait_s = 0.3
+    with budget.hold(budget.total, "another upload"):
+        r = upload(server.url, [("room.yaml", yaml_for()), ("room.pgm", pgm(room_picture()))])
+    assert r.status_code == 503 and r.headers["retry-after"] == "5", r.text
+    assert "QUICKNAV_MAP_DECODE_MB" in r.json()["detail"] and r.json()["detail"].startswith("files: room.pgm")
+    assert httpx.get(f"{server.url}/maps").json()["count"] == 0
+    r = upload(server.url, [("room.yaml", yaml_for()), ("room.pgm", pgm(room_picture()))])
+    assert r.status_code == 201, r.text

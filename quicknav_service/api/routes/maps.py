@@ -8,7 +8,17 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, File, Form, HTTPException, Path, Response, UploadFile
+from fastapi import (
+    APIRouter,
+    Depends,
+    File,
+    Form,
+    HTTPException,
+    Path,
+    Request,
+    Response,
+    UploadFile,
+)
 from fastapi.responses import JSONResponse
 
 from quicknav_service.api.deps import JobsDep, require_token
@@ -27,8 +37,8 @@ PAGE = 500
 FILES = {"map.yaml": "application/yaml", "map.pgm": "image/x-portable-graymap", "map.png": "image/png"}
 
 
-def _library(jobs: JobsDep) -> MapLibrary:
-    return MapLibrary(jobs.artifacts, jobs.settings.max_map_pixels)
+def _library(jobs: JobsDep, request: Request) -> MapLibrary:
+    return MapLibrary(jobs.artifacts, jobs.settings.max_map_pixels, request.app.state.map_decode_budget)
 
 
 LibraryDep = Annotated[MapLibrary, Depends(_library)]
@@ -57,6 +67,9 @@ def _public(meta: dict, used: dict[str, list[str]]) -> MapPublic:
 
 @router.post("", status_code=201, response_model=MapPublic,
              responses={**responses(400, 401, 403, 413, 415, 422),
+                        503: {**responses(503)[503], "description": "the job store or the artifact store"
+                              " cannot be reached, or other uploads hold the memory for reading maps"
+                              " (QUICKNAV_MAP_DECODE_MB); retry after Retry-After seconds"},
                         201: {"description": "stored (or already stored: the same files give the same id, renamed if a name is given)",
                               "headers": {"Location": {"description": "the map's URL", "required": True,
                                                        "schema": {"type": "string"}}}}})  # fmt: skip
@@ -82,7 +95,8 @@ def upload_map(
     except MapUploadError as e:
         if e.status == 422:
             raise HTTPException(422, [{"loc": ["body", e.field], "msg": e.message, "type": "map"}]) from None
-        raise HTTPException(e.status, f"{e.field}: {e.message}") from None
+        headers = {"Retry-After": str(e.retry_after_s)} if e.retry_after_s else None
+        raise HTTPException(e.status, f"{e.field}: {e.message}", headers=headers) from None
     response.headers["Location"] = f"/maps/{meta['id']}"
     return _public(meta, {})
 
