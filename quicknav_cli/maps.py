@@ -26,10 +26,13 @@ def _describe(m: dict) -> str:
     env = m["suggested_env"]
     sets = (f"--set env.rooms=maps --set env.maps.train='[\"{m['ref']}\"]'"
             f" --set env.grid_size={env['grid_size']} --set env.room_size={env['room_size']:g}")  # fmt: skip
+    if env.get("max_steps"):
+        sets += f" --set env.max_steps={env['max_steps']}"
+    notes = "".join(f"\n  note: {n}" for n in m.get("notes", []))
     return (f"map {m['id']} ({m['name']}): {m['width_px']} x {m['height_px']} pixels at"
             f" {m['resolution']:g} m, {m['width_m']:g} m x {m['height_m']:g} m, free"
             f" {100 * m['free_fraction']:.0f} %, unknown {100 * m['unknown_fraction']:.0f} %\n"
-            f"  in a config: {m['ref']}\n  at 0.5 m cells: {sets}")  # fmt: skip
+            f"  in a config: {m['ref']}\n  at 0.5 m cells: {sets}{notes}")  # fmt: skip
 
 
 @app.command("upload")

@@ -159,6 +159,37 @@ def _canonical(files: list[UploadedFile], resolution: float | None, negate: bool
     return text.encode(), _suffix(image.filename), image.data
 
 
+def suggest_env(yaml_path: Path, ref: str) -> tuple[dict[str, Any], list[str]]:
+    """The env fields that drive the map at the default 0.5 m cells (grid, room, and a step limit
+    from its longest shortest path, as ``quicknav eval --map`` sets them), and what to know about
+    them: free space the grid loses, a map too large for any grid at these cells."""
+    from quicknav_core.config import EnvConfig
+    from quicknav_core.eval.map_fit import fit_map
+
+    env = EnvConfig()
+    assert env.cell_size == SUGGESTED_CELL_M
+    try:
+        fit = fit_map(env, yaml_path)
+    except MapError as e:  # larger than any grid at 0.5 m cells, or nowhere a robot fits
+        m = load_map(yaml_path)
+        grid = max(math.ceil(x / SUGGESTED_CELL_M - 1e-9) for x in m.size_m) + 2
+        return ({"rooms": "maps", "maps": {"train": [ref]}, "grid_size": grid,
+                 "room_size": grid * SUGGESTED_CELL_M}, [str(e)])  # fmt: skip
+    suggested = {"rooms": "maps", "maps": {"train": [ref]}, "grid_size": fit.grid_size,
+                 "room_size": fit.room_size, "max_steps": fit.max_steps}  # fmt: skip
+    return suggested, fit.warnings()
+
+
+def limit_notes(suggested: dict[str, Any], max_grid_size: int) -> list[str]:
+    """What this server's limits say about a suggested env (QUICKNAV_MAX_GRID_SIZE)."""
+    grid = suggested.get("grid_size", 0)
+    if grid > max_grid_size:
+        return [f"grid_size {grid} is above this server's limit of {max_grid_size}"
+                f" (QUICKNAV_MAX_GRID_SIZE, which the operator can raise to 128): a job with this"
+                " env is refused here; crop the map to the part the robot drives"]  # fmt: skip
+    return []
+
+
 class MapLibrary:
     """The uploaded maps of one artifact store."""
 
@@ -213,28 +244,33 @@ class MapLibrary:
 
         from quicknav_core.env.render import map_picture, map_picture_step
 
+        map_id = hashlib.sha256(yaml_bytes + b"\0" + image_bytes).hexdigest()[:ID_LENGTH]
         with tempfile.TemporaryDirectory() as tmp:
             folder = Path(tmp)
             (folder / "map.yaml").write_bytes(yaml_bytes)
             (folder / f"map{suffix}").write_bytes(image_bytes)
+
+            def ours(message: str) -> str:  # the client's file names, not the server's paths
+                message = message.replace(str(folder / f"map{suffix}"), image_name)
+                return message.replace(str(folder / "map.yaml"), "the map")
+
             try:
                 m = load_map(folder / "map.yaml")
             except MapError as e:
-                msg = str(e).replace(str(folder / f"map{suffix}"), image_name)
-                raise MapUploadError("files", msg.replace(str(folder / "map.yaml"), "the map")) from None
-        free = int((~m.blocked).sum())
-        if free == 0:
-            raise MapUploadError("files", f"{image_name}: no free pixel: every pixel is occupied or"
-                                 " unknown (check negate and the thresholds)")  # fmt: skip
-        map_id = hashlib.sha256(yaml_bytes + b"\0" + image_bytes).hexdigest()[:ID_LENGTH]
-        existing = self.get(map_id)
-        if existing is not None:  # the same files: the same map, under the name given now
-            if name and name[:200] != existing["name"]:
-                existing["name"] = name[:200]
-                self.artifacts.put_bytes(f"{MAPS}/{map_id}", "meta.json", json.dumps(existing).encode())
-            return existing
+                raise MapUploadError("files", ours(str(e))) from None
+            free = int((~m.blocked).sum())
+            if free == 0:
+                raise MapUploadError("files", f"{image_name}: no free pixel: every pixel is occupied or"
+                                     " unknown (check negate and the thresholds)")  # fmt: skip
+            existing = self.get(map_id)
+            if existing is not None:  # the same files: the same map, under the name given now
+                if name and name[:200] != existing["name"]:
+                    existing["name"] = name[:200]
+                    self.artifacts.put_bytes(f"{MAPS}/{map_id}", "meta.json", json.dumps(existing).encode())
+                return existing
+            suggested, notes = suggest_env(folder / "map.yaml", MAP_ID_PREFIX + map_id)
+            notes = [n.replace(str(folder / "map.yaml"), image_name) for n in notes]
         width_m, height_m = m.size_m
-        grid = max(math.ceil(width_m / SUGGESTED_CELL_M - 1e-9), math.ceil(height_m / SUGGESTED_CELL_M - 1e-9)) + 2
         step = map_picture_step(m.blocked.shape)
         preview = io.BytesIO()
         Image.fromarray(map_picture(m.blocked, m.unknown)).save(preview, format="PNG")
@@ -254,8 +290,8 @@ class MapLibrary:
             "bytes": len(yaml_bytes) + len(image_bytes),
             "preview_m_per_px": m.resolution * step,
             # an env that holds the map at the default 0.5 m cells (a starting point, not a rule)
-            "suggested_env": {"rooms": "maps", "maps": {"train": [MAP_ID_PREFIX + map_id]},
-                              "grid_size": grid, "room_size": grid * SUGGESTED_CELL_M},
+            "suggested_env": suggested,
+            "notes": notes,
         }  # fmt: skip
         folder = f"{MAPS}/{map_id}"
         self.artifacts.put_bytes(folder, f"map{suffix}", image_bytes)

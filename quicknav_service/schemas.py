@@ -138,7 +138,13 @@ class MapPublic(BaseModel):
     preview_m_per_px: float = Field(description="metres per pixel of preview.png")
     suggested_env: dict[str, Any] = Field(
         description="env fields that hold this map at 0.5 m cells: rooms, maps.train, grid_size,"
-        " room_size (a starting point; a job may set its own)"
+        " room_size and max_steps (twice the map's longest shortest path at full speed; a"
+        " starting point, a job may set its own)"
+    )
+    notes: list[str] = Field(
+        default_factory=list, description="what to know before using suggested_env: free space"
+        " the grid loses at 0.5 m cells, a grid above this server's limit (and the setting that"
+        " raises it), a map too large for any grid",
     )
     preview_url: str
     used_by: list[str] = Field(

@@ -74,9 +74,12 @@ def test_upload__read_back_as_the_env_reads_it(server, tmp_path):
     assert meta["width_m"] == pytest.approx(7.6)
     assert meta["unknown_fraction"] == pytest.approx(float((img == UNKNOWN).mean()), abs=1e-4)
     assert meta["free_fraction"] == pytest.approx(float((img == FREE).mean()), abs=1e-4)
-    # 7.6 m at 0.5 m cells: 16 cells and the outer ring
+    # 7.6 m at 0.5 m cells: 16 cells and the outer ring; a small room's step limit is the env's
     assert meta["suggested_env"] == {"rooms": "maps", "maps": {"train": [meta["ref"]]},
-                                     "grid_size": 18, "room_size": 9.0}  # fmt: skip
+                                     "grid_size": 18, "room_size": 9.0, "max_steps": 300}  # fmt: skip
+    # its 10 cm walls at 0.5 m cells: the grid loses some free space, and says how much
+    (note,) = meta["notes"]
+    assert note.startswith("room.pgm: at 0.5 m cells the grid keeps") and "free space" in note, note
     # the same files again: the same map
     again = upload(server.url, [("room.yaml", yaml_for()), ("room.pgm", pgm(img))])
     assert again.status_code == 201 and again.json()["id"] == meta["id"]
@@ -464,3 +467,54 @@ def test_upload__waits_for_the_decode_budget_then_503_with_retry_after(server):
     assert httpx.get(f"{server.url}/maps").json()["count"] == 0
     r = upload(server.url, [("room.yaml", yaml_for()), ("room.pgm", pgm(room_picture()))])
     assert r.status_code == 201, r.text
+
+
+def corridor_picture(length_m: float, width_m: float, res: float) -> np.ndarray:
+    """A straight corridor ``length_m`` long and ``width_m`` wide (walls one pixel thick)."""
+    h, w = round((width_m + 2 * res) / res), round(length_m / res)
+    img = np.full((h, w), OCCUPIED, np.uint8)
+    img[1:-1, 1:-1] = FREE
+    return img
+
+
+@pytest.mark.parametrize("length_m,res", [(20.0, 0.1), (40.0, 0.2), (70.0, 0.2)])
+def test_upload__suggestion_sets_a_step_limit_and_says_what_the_server_and_the_cells_allow(
+    tmp_path, length_m, res
+):
+    """A long corridor: the suggested step limit covers its longest path (twice it, at full speed,
+    as `quicknav eval --map` sets it); a grid above this server's QUICKNAV_MAX_GRID_SIZE (64) says
+    so and names the setting; a map larger than any grid at 0.5 m cells says so."""
+    from quicknav_core.config import EnvConfig
+
+    with LiveServer(tmp_path, max_map_pixels=400_000) as server:
+        r = upload(server.url, [("corridor.png", png(corridor_picture(length_m, 2.0, res)))], resolution=res)
+    assert r.status_code == 201, r.text
+    m = r.json()
+    env, notes = m["suggested_env"], m["notes"]
+    grid = int(np.ceil(length_m / 0.5)) + 2
+    assert env["grid_size"] == grid and env["room_size"] == grid * 0.5
+    if grid <= 128:
+        step_m = EnvConfig().max_wheel_speed * EnvConfig().dt
+        assert env["max_steps"] >= 2 * (length_m - 2) / step_m, env  # end to end, at full speed, twice
+    limit = [n for n in notes if "this server's limit" in n]
+    if grid <= 64:
+        assert limit == [], notes
+    elif grid <= 128:
+        assert len(limit) == 1 and f"grid_size {grid} is above this server's limit of 64" in limit[0]
+        assert "QUICKNAV_MAX_GRID_SIZE" in limit[0], notes
+    else:
+        assert "max_steps" not in env and any("above the 128 an env may have" in n for n in notes), notes
+        assert all("/tmp" not in n for n in notes), notes  # the client's file name, not a server path
+
+
+def test_upload__a_map_that_loses_free_space_at_half_metre_cells_says_so(server):
+    """A room whose doorway is narrower than a 0.5 m cell: the grid keeps only one side."""
+    n = round(6.0 / RES)
+    img = np.full((n, n), OCCUPIED, np.uint8)
+    img[2:-2, 2:-2] = FREE
+    img[:, n // 2 - 2 : n // 2 + 2] = OCCUPIED  # a wall down the middle ...
+    img[n // 2 - 3 : n // 2 + 3, n // 2 - 2 : n // 2 + 2] = FREE  # ... with a 0.3 m gap
+    r = upload(server.url, [("split.png", png(img))], resolution=RES)
+    assert r.status_code == 201, r.text
+    (note,) = r.json()["notes"]
+    assert "split.png: at 0.5 m cells the grid keeps" in note and "of the map's free space" in note, note

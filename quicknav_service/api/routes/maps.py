@@ -24,7 +24,7 @@ from fastapi.responses import JSONResponse
 from quicknav_service.api.deps import JobsDep, require_token
 from quicknav_service.api.errors import AUTH, STORE, responses
 from quicknav_service.jobs.models import JobStatus
-from quicknav_service.maps import MapLibrary, MapUploadError, UploadedFile, maps_named
+from quicknav_service.maps import MapLibrary, MapUploadError, UploadedFile, limit_notes, maps_named
 from quicknav_service.schemas import MapPublic, MapsPublic
 
 router = APIRouter(prefix="/maps", tags=["maps"], dependencies=[Depends(require_token)],
@@ -60,8 +60,9 @@ def _active_use(jobs: JobsDep) -> dict[str, list[str]]:
     return out
 
 
-def _public(meta: dict, used: dict[str, list[str]]) -> MapPublic:
-    return MapPublic(**meta, preview_url=f"/maps/{meta['id']}/preview.png",
+def _public(meta: dict, used: dict[str, list[str]], max_grid_size: int) -> MapPublic:
+    notes = [*meta.get("notes", []), *limit_notes(meta["suggested_env"], max_grid_size)]
+    return MapPublic(**{**meta, "notes": notes}, preview_url=f"/maps/{meta['id']}/preview.png",
                      used_by=sorted(set(used.get(meta["id"], []))))  # fmt: skip
 
 
@@ -98,14 +99,14 @@ def upload_map(
         headers = {"Retry-After": str(e.retry_after_s)} if e.retry_after_s else None
         raise HTTPException(e.status, f"{e.field}: {e.message}", headers=headers) from None
     response.headers["Location"] = f"/maps/{meta['id']}"
-    return _public(meta, {})
+    return _public(meta, {}, jobs.settings.max_grid_size)
 
 
 @router.get("", response_model=MapsPublic)
 def list_maps(library: LibraryDep, jobs: JobsDep) -> MapsPublic:
     """Every uploaded map, newest first, with the queued and running jobs that use it."""
     used = _active_use(jobs)
-    data = [_public(m, used) for m in library.list()]
+    data = [_public(m, used, jobs.settings.max_grid_size) for m in library.list()]
     return MapsPublic(data=data, count=len(data))
 
 
@@ -133,7 +134,7 @@ def _meta(library: MapLibrary, map_id: str) -> dict:
 @router.get("/{map_id}", response_model=MapPublic, responses=responses(404, 409, 422))
 def get_map(map_id: MapId, library: LibraryDep, jobs: JobsDep) -> MapPublic:
     """One map: its size, resolution, free space, the env fields that hold it, and who uses it."""
-    return _public(_meta(library, map_id), _active_use(jobs))
+    return _public(_meta(library, map_id), _active_use(jobs), jobs.settings.max_grid_size)
 
 
 BINARY = {"schema": {"type": "string", "format": "binary"}}
