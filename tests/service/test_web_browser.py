@@ -128,7 +128,8 @@ def test_browser__asks_for_the_token_and_signs_in(server, page, shots):
     page.fill("input[name=token]", TOKEN)
     page.click("#login button[type=submit]")
     page.wait_for_selector("#jobs")
-    assert "No jobs yet" in page.inner_text("#jobs")
+    # the table is drawn before the first list arrives: wait for what the list says
+    page.locator("#jobs").get_by_text("No jobs yet").wait_for(timeout=10_000)
 
 
 def test_browser__form_shows_the_servers_error_next_to_the_field(server, page, shots):
@@ -451,6 +452,11 @@ def test_browser__maps_form_sends_the_plain_image_fields(server, page, tmp_path)
     (m,) = [m for m in httpx.get(f"{server}/maps", headers=AUTH).json()["data"] if m["name"] == "grey room"]
     assert m["resolution"] == 0.1 and m["unknown_fraction"] == 0, m
     assert m["free_fraction"] == pytest.approx(36 * 36 / (40 * 40)), m
+    # the card says what the API's notes say (here: the free space its 0.5 m cells keep)
+    card = page.locator(f'figure[data-map="{m["id"]}"]')
+    card.wait_for()
+    assert m["notes"] and card.locator(".map-note").all_inner_texts() == m["notes"], m["notes"]
+    page.screenshot(path=tmp_path / "maps-notes.png", full_page=True)
     # a threshold out of its range is the server's 422, shown on the page, nothing stored
     page.set_input_files("#map-files", [tmp_path / "grey.pgm"])
     page.fill("#map-resolution", "0.1")

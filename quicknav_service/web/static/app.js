@@ -677,6 +677,7 @@ function mapCard(m, refresh) {
       `${m.width_px} × ${m.height_px} px at ${m.resolution} m: ${metres(m.width_m)} × ${metres(m.height_m)}, `
         + `free ${Math.round(100 * m.free_fraction)} %, unknown ${Math.round(100 * m.unknown_fraction)} %`, h("br"),
       m.used_by.length ? h("span", {}, "in use by ", m.used_by.map((j) => h("a", { href: `/ui/jobs/${j}`, class: "mono" }, short(j), " "))) : null,
+      (m.notes || []).map((n) => h("p", { class: "note-box map-note" }, n)),
       h("div", { class: "controls" },
         h("a", { href: `/ui/submit?map=${m.id}` }, h("button", { class: "primary" }, "Train on this map")), del),
       status));
