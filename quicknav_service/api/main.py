@@ -96,7 +96,8 @@ def create_app(
     app.state.workers = []
     docs.install(app)
     errors.install(app)
-    openapi.install(app)
+    openapi.install(app, api_token=settings.api_token is not None,
+                    metrics_token=settings.metrics_token is not None)  # fmt: skip
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes,
                        uploads={"/maps": settings.max_map_upload_bytes})  # fmt: skip
     app.add_middleware(CrossSiteGuard, origins=settings.trusted_origins)

@@ -19,15 +19,29 @@ def _errors_as_json(spec: dict[str, Any]) -> dict[str, Any]:
     return spec
 
 
-def install(app: FastAPI) -> None:
-    """Build the document once, on first request, from the app's routes."""
+def _security_as_configured(spec: dict[str, Any], api_token: bool, metrics_token: bool) -> dict[str, Any]:
+    # the routes declare the bearer token; a server started without one asks for none, and its
+    # document says so (only /metrics keeps it when a metrics token alone is set)
+    for path, item in spec.get("paths", {}).items():
+        needed = (api_token or metrics_token) if path == "/metrics" else api_token
+        for operation in item.values():
+            if not needed and isinstance(operation, dict):
+                operation.pop("security", None)
+    if not (api_token or metrics_token):
+        spec.get("components", {}).pop("securitySchemes", None)
+    return spec
+
+
+def install(app: FastAPI, api_token: bool = True, metrics_token: bool = False) -> None:
+    """Build the document once, on first request, from the app's routes (with the token the
+    server asks for: none, when it was started without one)."""
 
     def openapi() -> dict[str, Any]:
         if app.openapi_schema is None:
-            app.openapi_schema = _errors_as_json(get_openapi(
+            app.openapi_schema = _security_as_configured(_errors_as_json(get_openapi(
                 title=app.title, version=app.version, description=app.description,
                 routes=app.routes, separate_input_output_schemas=app.separate_input_output_schemas,
-            ))  # fmt: skip
+            )), api_token, metrics_token)  # fmt: skip
         return app.openapi_schema
 
     app.openapi = openapi

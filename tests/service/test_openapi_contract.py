@@ -105,3 +105,28 @@ def test_openapi__what_the_document_refuses_is_refused(api_schema, app_and_store
             nothing_to_break.append(f"{operation.method.upper()} {operation.path}")
     # every operation that takes a body or an id has invalid requests, and they were all sent
     assert not [o for o in nothing_to_break if "{" in o or o.startswith("POST")], nothing_to_break
+
+
+def test_openapi__asks_for_the_token_only_when_the_server_has_one(tmp_path, app_and_store):
+    """The document says what a client must send: the bearer token on every job and map route of
+    a server with a token, nothing on one started without (schemathesis' auth check found the
+    tokenless server "ignoring" the token its document asked for), /metrics alone with a metrics
+    token; the cancel body is required (clients send {}; the web view's header is the exception)."""
+    from fastapi.testclient import TestClient
+
+    def spec(**settings):
+        app = create_app(Settings(data_dir=tmp_path, embedded_worker=False, **settings),
+                         SQLiteJobStore(tmp_path / "jobs.db"), start_workers=False)  # fmt: skip
+        return TestClient(app).get("/openapi.json").json()
+
+    def secured(doc):
+        return {f"{m.upper()} {p}" for p, item in doc["paths"].items() for m, op in item.items()
+                if op.get("security")}  # fmt: skip
+
+    with_token = TestClient(app_and_store[0]).get("/openapi.json").json()
+    assert {"GET /jobs", "POST /jobs/train", "POST /maps", "GET /metrics"} <= secured(with_token)
+    assert "bearer" in str(with_token["components"]["securitySchemes"]).lower()
+    assert with_token["paths"]["/jobs/{job_id}/cancel"]["post"]["requestBody"]["required"] is True
+    open_doc = spec()
+    assert secured(open_doc) == set() and "securitySchemes" not in open_doc["components"]
+    assert secured(spec(metrics_token="m-token-0123456789")) == {"GET /metrics"}

@@ -79,7 +79,7 @@ def upload_map(
     jobs: JobsDep,
     response: Response,
     files: Annotated[list[UploadFile], File(
-        description="a ROS map_server .yaml with the .pgm/.png it names, or one .png/.pgm image")],
+        min_length=1, description="a ROS map_server .yaml with the .pgm/.png it names, or one .png/.pgm image")],
     name: Annotated[str | None, Form(max_length=200, description="a label (default: the image's name)")] = None,
     resolution: Annotated[float | None, Form(
         gt=0, le=100, description="metres per pixel: plain images only (a .yaml names its own)")] = None,
