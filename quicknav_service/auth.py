@@ -112,6 +112,7 @@ class RedisFailureLimiter:
         self._redis = redis.Redis.from_url(url, socket_timeout=2.0, socket_connect_timeout=2.0)
         self._errors = (redis.RedisError, OSError)
         self.fallback = FailureLimiter(limit, window_s)
+        self._down = False  # said once per outage: a flood of guesses must not flood the log
 
     def _key(self, client: str) -> str:
         return f"{self.prefix}:auth-failures:{client}"
@@ -121,8 +122,10 @@ class RedisFailureLimiter:
         return seconds + micros / 1e6
 
     def _unreachable(self, e: Exception) -> None:
-        log.warning("auth limiter: Redis unreachable (%s); counting in this process meanwhile",
-                    type(e).__name__)  # fmt: skip
+        if not self._down:
+            log.warning("auth limiter: Redis unreachable (%s); counting in this process meanwhile",
+                        type(e).__name__)  # fmt: skip
+        self._down = True
 
     def retry_after(self, client: str) -> int | None:
         key = self._key(client)
@@ -136,6 +139,9 @@ class RedisFailureLimiter:
         except self._errors as e:
             self._unreachable(e)
             return self.fallback.retry_after(client)
+        if self._down:
+            log.info("auth limiter: Redis reachable again")
+            self._down = False
         local = self.fallback.retry_after(client)  # failures counted here while Redis was away
         if count < self.limit or not oldest:
             return local
