@@ -54,7 +54,10 @@ def interval(
     scores = np.asarray(scores, dtype=np.float64)
     if scores.ndim != 2:
         raise ValueError(f"scores must be (seeds, episodes), got shape {scores.shape}")
-    point = float(statistic(scores.reshape(-1), axis=-1))
+    # a mean or IQM lies inside the data's range, up to rounding (the IQM of 0.92s can come back
+    # as 0.9200000000000002): pinned to it, as the interval is below
+    lo_data, hi_data = float(scores.min()), float(scores.max())
+    point = min(hi_data, max(lo_data, float(statistic(scores.reshape(-1), axis=-1))))
     if scores.shape[0] < 2:
         return point, float("nan"), float("nan")
     if np.all(scores == scores.flat[0]):  # every resample is the same matrix
@@ -65,8 +68,7 @@ def interval(
         rng=np.random.default_rng(seed),
     )  # fmt: skip
     # a percentile interval of a mean or IQM lies inside the data's range and holds the point up
-    # to rounding (a pooled mean of 0.92s can come back as 0.9200000000000002): pin both
-    lo_data, hi_data = float(scores.min()), float(scores.max())
+    # to rounding: pin both ends
     low = min(point, max(lo_data, float(res.confidence_interval.low)))
     high = max(point, min(hi_data, float(res.confidence_interval.high)))
     return point, low, high

@@ -83,6 +83,14 @@ def test_bootstrap_interval__holds_its_point_inside_the_data_range(matrix, stati
     assert scores.min() <= lo <= point <= hi <= scores.max()
 
 
+def test_bootstrap_interval__the_found_case_an_iqm_of_equal_scores_one_ulp_above_them():
+    """Hypothesis found it in CI: the IQM of 0.92s computed as 0.9200000000000002, above the
+    data's maximum; the point is pinned to the data's range as the interval is."""
+    scores = np.array([[0.0, 0.0, 0.92], [0.92, 0.92, 0.92], [0.92, 0.92, 0.92]])
+    point, lo, hi = interval(scores, iqm, resamples=200)
+    assert scores.min() <= lo <= point <= hi <= scores.max() and point == 0.92
+
+
 def test_performance_profile__bands_hold_the_curve():
     rng = np.random.default_rng(0)
     scores = np.clip(rng.normal(0.9, 0.1, size=(3, 40)), 0, 1)
