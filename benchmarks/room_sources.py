@@ -6,8 +6,10 @@ and 128 cells, the shipped office map (map_server YAML + PGM) at 48 cells, and a
 
 Every row but the last two: the same robot (radius 0.15 m) and cells of 0.5 m (room side = grid x
 0.5 m), so larger grids are larger buildings; 16 lidar beams, random actions, the whole observation
-consumed, ``batch`` envs vmapped inside one jitted lax.scan (the method of `quicknav bench`). The bank's build time
-and the compile time are printed beside the rate.
+consumed, ``batch`` envs inside one jitted lax.scan (the method of `quicknav bench`), stepped two ways: gymnax's
+``vmap(env.step)`` (every env computes a reset every step, a select keeps it or not) and
+``env.batch.batched_step`` (only the envs that ended are reset; QuickNav's PPO steps this way).
+The bank's build time and the compile time are printed beside the rates.
 """
 
 from __future__ import annotations
@@ -42,7 +44,7 @@ def configs():
     ]
 
 
-def measure(config, batch: int, steps: int, repeats: int) -> dict:
+def measure(config, batch: int, steps: int, repeats: int, batched: bool = False) -> dict:
     import jax
 
     from quicknav_core.bench.env import make_scan_rollout
@@ -53,7 +55,7 @@ def measure(config, batch: int, steps: int, repeats: int) -> dict:
     length = max(steps // batch, 8)
     key = jax.random.PRNGKey(0)
     _, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key, batch), params)
-    rollout = make_scan_rollout(env, params, batch, length, False)
+    rollout = make_scan_rollout(env, params, batch, length, False, batched)
     t0 = time.perf_counter()
     compiled = jax.jit(rollout, donate_argnums=(1,)).lower(key, state).compile()
     compile_s = time.perf_counter() - t0
@@ -79,11 +81,15 @@ def main() -> None:
     import jax
 
     rows = []
-    print(f"{'rooms':<16} {'steps/s':>12} {'bank s':>8} {'compile s':>10}")
+    print(f"{'rooms':<22} {'vmap(step)/s':>13} {'batched/s':>12} {'bank s':>8} {'compile s':>10}")
     for name, cfg in configs():
-        r = {"rooms": name, "grid": cfg.grid_size, **measure(cfg, args.batch, args.steps, args.repeats)}
+        plain = measure(cfg, args.batch, args.steps, args.repeats)
+        batched = measure(cfg, args.batch, args.steps, args.repeats, batched=True)
+        r = {"rooms": name, "grid": cfg.grid_size, "lidar_lines": cfg.lidar_lines, **plain,
+             "batched_steps_per_s": batched["steps_per_s"]}  # fmt: skip
         rows.append(r)
-        print(f"{name:<16} {r['steps_per_s']:>12,} {r['bank_build_s']:>8} {r['compile_s']:>10}", flush=True)
+        print(f"{name:<22} {r['steps_per_s']:>13,} {r['batched_steps_per_s']:>12,}"
+              f" {r['bank_build_s']:>8} {r['compile_s']:>10}", flush=True)  # fmt: skip
     from quicknav_core.bench.machine import machine_info, machine_line
 
     doc = {"machine": f"{machine_line()}, jax {jax.__version__}", "machine_info": machine_info(),

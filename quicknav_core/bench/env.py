@@ -241,25 +241,35 @@ def bench_jax_python_loop(grid: int, cfg: BenchConfig, cap_s: float) -> Measurem
     )  # fmt: skip
 
 
-def make_scan_rollout(env, params, batch: int, length: int, final_obs: bool):
-    """A jittable rollout: ``length`` steps of ``batch`` vmapped envs with random actions."""
+def make_scan_rollout(env, params, batch: int, length: int, final_obs: bool, batched: bool = False):
+    """A jittable rollout: ``length`` steps of ``batch`` vmapped envs with random actions.
+
+    ``batched``: step with ``env.batch.batched_step`` (as QuickNav's PPO does: only the envs that
+    ended are reset) instead of ``vmap(env.step)`` (gymnax's auto-reset, every env every step)."""
     import jax
     import jax.numpy as jnp
 
+    from quicknav_core.env.batch import batched_step
+
     vstep = jax.vmap(env.step, in_axes=(0, 0, 0, None))
+
+    def step(keys, state, actions):
+        if not batched:
+            obs, state, reward, done, info = vstep(keys, state, actions, params)
+            return obs, state, reward, done, info.get("final_obs")
+        obs, state, reward, info, final = batched_step(env, keys, state, actions, params)
+        return obs, state, reward, info["terminated"] | info["truncated"], final
 
     def rollout(key, state):
         def body(carry, _):
             key, state, total = carry
             key, k_act, k_step = jax.random.split(key, 3)
             actions = jax.random.uniform(k_act, (batch, 2), minval=-1.0, maxval=1.0)
-            obs, state, reward, done, info = vstep(
-                jax.random.split(k_step, batch), state, actions, params
-            )
+            obs, state, reward, done, final = step(jax.random.split(k_step, batch), state, actions)
             # consume the whole observation and the outputs: none of the step's work is dead code
             total = total + reward.sum() + obs.sum() + done.sum()
             if final_obs:
-                total = total + info["final_obs"].sum()
+                total = total + final.sum()
             return (key, state, total), None
 
         (key, state, total), _ = jax.lax.scan(body, (key, state, jnp.float32(0.0)), None, length)

@@ -403,7 +403,9 @@ class EnvConfig(StrictModel):
 
     # properties that fix compiled code besides the STATIC fields (a randomised env carries its
     # perturbation in the state; a robot wider than a cell tests more cells for collisions)
-    DERIVED_STATIC: ClassVar[tuple[str, ...]] = ("randomized", "collision_reach", "obstacle_counts")
+    DERIVED_STATIC: ClassVar[tuple[str, ...]] = (
+        "randomized", "collision_reach", "obstacle_counts", "lidar_lines",
+    )  # fmt: skip
 
     def compile_key(self) -> tuple:
         """What the env's compiled code depends on: the STATIC fields and DERIVED_STATIC. Envs
@@ -416,6 +418,14 @@ class EnvConfig(StrictModel):
         """(static, moving) obstacles per episode, None without them: they fix the state's shape."""
         o = self.obstacles
         return None if o is None or o.count == 0 else (o.static, o.moving)
+
+    @property
+    def lidar_lines(self) -> int:
+        """Grid lines per axis the lidar crosses around the robot: its range in cells, not the
+        grid's size, sets the work per beam (``env.lidar.lidar_window``)."""
+        from quicknav_core.env.lidar import lidar_window
+
+        return lidar_window(self.grid_size, self.cell_size, self.lidar_max_range)
 
     @property
     def randomized(self) -> bool:

@@ -65,8 +65,15 @@ def read_bit(words: jax.Array, index: jax.Array) -> jax.Array:
 
 
 def set_bit(bits: jax.Array, row: jax.Array, col: jax.Array) -> jax.Array:
-    """(g, W) packed grid with bit (row, col) set; written as a masked OR (vmaps without scatters)."""
+    """(g, W) packed grid with bit (row, col) set.
+
+    Up to 32 cells a side (one word per row) as a masked OR over the whole grid (vmaps without
+    scatters, and the grid is a few words); larger grids rewrite only the row (one gather and one
+    scatter per env: a masked OR over a 128-cell grid cost more than the rest of the step)."""
     g, n = bits.shape
-    hit = (jnp.arange(g)[:, None] == row) & (jnp.arange(n)[None, :] == col // 32)
     mask = jnp.left_shift(jnp.uint32(1), (col % 32).astype(jnp.uint32))
+    if n > 1:
+        words = bits[row]
+        return bits.at[row].set(jnp.where(jnp.arange(n) == col // 32, words | mask, words))
+    hit = (jnp.arange(g)[:, None] == row) & (jnp.arange(n)[None, :] == col // 32)
     return jnp.where(hit, bits | mask, bits)

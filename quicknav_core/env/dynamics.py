@@ -36,8 +36,12 @@ def drive(
 
 
 def _row_word(row_bits: jax.Array, row: jax.Array) -> jax.Array:
-    """Packed words of one row, selected by a one-hot mask (no gather under vmap): (W,)."""
+    """Packed words of one row: (W,). Up to 32 cells a side selected by a one-hot mask (no gather
+    under vmap, over a few words); larger grids gather the row (a mask over a 128-cell grid's rows
+    cost more than the rest of the step)."""
     g = row_bits.shape[0]
+    if row_bits.shape[1] > 1:
+        return row_bits[row]
     pick = (jnp.arange(g, dtype=jnp.int32) == row)[:, None]
     return jnp.sum(jnp.where(pick, row_bits, jnp.uint32(0)), axis=0, dtype=jnp.uint32)
 

@@ -21,6 +21,8 @@ the beam's entry into the goal disc compete; beyond ``max_range`` the beam repor
 
 from __future__ import annotations
 
+import math
+
 import jax
 import jax.numpy as jnp
 
@@ -30,7 +32,8 @@ from quicknav_core.env.constants import HIT_GOAL, HIT_NONE, HIT_WALL, beam_angle
 
 __all__ = [
     "FASTEST_LIDAR", "LIDAR_METHODS", "beam_angles", "cast_lidar", "cast_lidar_bits",
-    "cast_lidar_dda", "cast_lidar_packed", "lidar_is_paired", "ray_disc", "resolve_lidar_method",
+    "cast_lidar_dda", "cast_lidar_packed", "lidar_is_paired", "lidar_window", "ray_disc",
+    "resolve_lidar_method",
 ]  # fmt: skip
 
 LIDAR_METHODS = ("crossings", "dda")
@@ -157,6 +160,7 @@ def cast_lidar_bits(
     cell: jax.Array | float,
     max_range: jax.Array | float,
     goal_radius: jax.Array | float,
+    lines: int | None = None,
 ) -> tuple[jax.Array, jax.Array]:
     """Cast all beams over packed walls. Returns (ranges (B,) float32 metres, hits (B,) int32).
 
@@ -164,9 +168,18 @@ def cast_lidar_bits(
     ``num_beams`` and ``fov_deg`` are static. With a 360° lidar and an even beam count, beam i and
     beam i + B/2 point in opposite directions and meet each grid line at the same point, so each
     crossing is computed once for the pair (about a third less work).
+
+    ``lines`` (static; ``lidar_window``) bounds the work by the lidar's range instead of the
+    grid: only that many lines per axis around the robot are crossed, the window that holds every
+    line within ``max_range`` (a wall beyond it is out of range, so the result is the same). None:
+    every line of the grid.
     """
     inv_cell = 1.0 / cell
     px, py = pos[0] * inv_cell, pos[1] * inv_cell
+    g = row_bits.shape[0]
+    if lines is not None and lines < g - 1 and g > 32:
+        return _cast_window(px, py, theta, pos, goal, col_bits, row_bits, num_beams, fov_deg, cell,
+                            max_range, goal_radius, lines)  # fmt: skip
     enter_x = _entered_bits(px, col_bits)
     enter_y = _entered_bits(py, row_bits)
     paired = lidar_is_paired(num_beams, fov_deg)
@@ -193,6 +206,52 @@ def cast_lidar_bits(
     return _with_goal(t_wall * cell, pos, dx, dy, goal, max_range, goal_radius)
 
 
+def lidar_window(grid_size: int, cell: float, max_range: float) -> int:
+    """Grid lines per axis the caster must cross to see ``max_range`` from anywhere in a cell:
+    those within ``ceil(max_range / cell)`` of the robot's cell on either side, one more each way
+    for rounding, at most the grid's ``g - 1``."""
+    reach = math.ceil(max_range / cell - 1e-9)
+    return min(grid_size - 1, 2 * reach + 3)
+
+
+def _window_bits(origin: jax.Array, line_bits: jax.Array, lines: int) -> tuple[jax.Array, jax.Array]:
+    """The window of ``lines`` consecutive lines centred on the origin's cell (shifted to stay in
+    1..g-1): (the first line's index k0 as float32, the entered walls of those lines (lines, W))."""
+    g = line_bits.shape[0]
+    k0 = jnp.clip(jnp.floor(origin).astype(jnp.int32) - (lines - 1) // 2, 1, g - lines)
+    near = jax.lax.dynamic_slice_in_dim(line_bits, k0 - 1, lines + 1, axis=0)  # cells k0-1..k0+lines-1
+    ahead = (k0 + jnp.arange(lines)).astype(jnp.float32) > origin
+    return k0.astype(jnp.float32), jnp.where(ahead[:, None], near[1:], near[:-1])
+
+
+def _window_crossings(origin_a, origin_b, dir_a, dir_b, k0, entered):
+    """``_crossings`` over the window's lines ``a = k0 .. k0 + lines - 1``."""
+    k = k0 + jnp.arange(entered.shape[0], dtype=jnp.float32)
+    inv = 1.0 / jnp.where(jnp.abs(dir_a) < 1e-12, 1e-12, dir_a)
+    t = (k[None, :] - origin_a) * inv[:, None]
+    idx = jnp.floor(origin_b + t * dir_b[:, None]).astype(jnp.int32)
+    return t, read_bit(entered[None, :, :], idx)
+
+
+def _cast_window(px, py, theta, pos, goal, col_bits, row_bits, num_beams, fov_deg, cell, max_range,
+                 goal_radius, lines):  # fmt: skip
+    """``cast_lidar_bits`` over the ``lines`` lines per axis around the robot (see there)."""
+    kx, enter_x = _window_bits(px, col_bits, lines)
+    ky, enter_y = _window_bits(py, row_bits, lines)
+    paired = lidar_is_paired(num_beams, fov_deg)
+    dx, dy = beam_directions(theta, num_beams, fov_deg, num_beams // 2 if paired else num_beams)
+    t_v, wall_v = _window_crossings(px, py, dx, dy, kx, enter_x)
+    t_h, wall_h = _window_crossings(py, px, dy, dx, ky, enter_y)
+    t = jnp.concatenate([t_v, t_h], axis=-1)
+    wall = jnp.concatenate([wall_v, wall_h], axis=-1)
+    t_wall = jnp.min(jnp.where(wall & (t >= 0.0), t, _BIG), axis=-1)
+    if paired:
+        t_wall = jnp.concatenate([t_wall, jnp.min(jnp.where(wall & (t < 0.0), -t, _BIG), axis=-1)])
+        dx, dy = jnp.concatenate([dx, -dx]), jnp.concatenate([dy, -dy])
+    return _with_goal(jnp.where(t_wall < _BIG, t_wall * cell, _BIG), pos, dx, dy, goal, max_range,
+                      goal_radius)  # fmt: skip
+
+
 def _with_goal(t_wall, pos, dx, dy, goal, max_range, goal_radius):
     """Ranges and hit types from the wall distance (metres, BIG if none) and the goal disc."""
     t_goal = ray_disc(pos, dx, dy, goal, goal_radius)
@@ -214,6 +273,7 @@ def cast_lidar_dda(
     cell: jax.Array | float,
     max_range: jax.Array | float,
     goal_radius: jax.Array | float,
+    lines: int | None = None,
 ) -> tuple[jax.Array, jax.Array]:
     """``cast_lidar_bits`` by a cell walk per beam (same arguments, same results).
 
@@ -223,7 +283,7 @@ def cast_lidar_dda(
     ``max_range``. Distances are computed from the line index each time, as the crossings method
     does, so no error accumulates along the walk. ``col_bits`` is not read.
     """
-    del col_bits
+    del col_bits, lines  # the walk ends at max_range by itself
     g = row_bits.shape[0]
     inv_cell = 1.0 / cell
     px, py = pos[0] * inv_cell, pos[1] * inv_cell
@@ -287,10 +347,11 @@ def cast_lidar(
     max_range: jax.Array | float,
     goal_radius: jax.Array | float,
     method: str = "auto",
+    lines: int | None = None,
 ) -> tuple[jax.Array, jax.Array]:
     """Cast all beams in a (g, g) bool wall grid (packs it first; see ``cast_lidar_bits``)."""
     walls = jnp.asarray(walls, bool)
     return cast_lidar_packed(method)(
         pos, theta, goal, pack_rows(walls.T), pack_rows(walls), num_beams, fov_deg, cell,
-        max_range, goal_radius,
+        max_range, goal_radius, lines,
     )  # fmt: skip

@@ -467,6 +467,7 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
             params.room_size / self.grid_size,
             params.lidar_max_range,
             params.goal_radius,
+            self.config.lidar_lines,
         )
         if state.obstacles is not None:  # the discs the map does not show, seen as walls
             dx, dy = beam_directions(state.theta, self.num_beams, self.config.lidar_fov_deg)

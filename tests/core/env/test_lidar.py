@@ -11,8 +11,8 @@ from quicknav_core.env.room_sources import make_room_bank
 from tests.core.env.reference import brute_force_lidar, disc_wall_clearance
 
 cast_batch = jax.jit(
-    jax.vmap(cast_lidar, in_axes=(0, 0, 0, 0, None, None, None, None, None, None)),
-    static_argnums=(4, 5, 9),
+    jax.vmap(cast_lidar, in_axes=(0, 0, 0, 0, None, None, None, None, None, None, None)),
+    static_argnums=(4, 5, 9, 10),
 )
 METHODS = ["crossings", "dda"]
 
@@ -44,7 +44,8 @@ def _random_poses(rooms, cell, radius, rng, per_room):
         (8, 7, 120.0, 3.0),
         (32, 33, 270.0, 10.0),
         (40, 12, 360.0, 2.0),
-    ],  # 40: carved with return_prob 0.02 below,
+        (64, 15, 270.0, 1.5),
+    ],  # 40, 64: carved with return_prob 0.02 below; their range is a window of the grid's lines
 )
 def test_lidar__matches_brute_force(grid, beams, fov, max_range, method):
     cfg = EnvConfig(
@@ -60,8 +61,11 @@ def test_lidar__matches_brute_force(grid, beams, fov, max_range, method):
     theta = np.array([p[2] for p in poses], np.float32)
     goal = np.stack([p[3] for p in poses]).astype(np.float32)
     angles = beam_angles(beams, fov)
+    lines = cfg.lidar_lines  # what the env passes: the lines within range, or the whole grid
+    assert (lines < grid - 1) == (grid >= 40), lines
     ranges, hits = cast_batch(
-        pos, theta, goal, walls, beams, fov, cfg.cell_size, max_range, cfg.goal_radius, method
+        pos, theta, goal, walls, beams, fov, cfg.cell_size, max_range, cfg.goal_radius, method,
+        lines,
     )
     ranges, hits = np.asarray(ranges), np.asarray(hits)
     worst = 0.0
@@ -159,3 +163,29 @@ def test_lidar_method__envs_step_identically_with_either_caster():
         out = {m: e.step(actions) for m, e in envs.items()}
         np.testing.assert_allclose(out["crossings"].obs, out["dda"].obs, atol=1e-5)
         np.testing.assert_array_equal(out["crossings"].reward, out["dda"].reward)
+
+
+def test_lidar__range_window_sees_what_the_whole_grid_sees():
+    """The caster crosses only the lines within range of the robot (``lidar_window``): on sparse
+    walls, where many hits lie near the range's edge and near the grid's border, it returns exactly
+    what crossing every line of the grid returns."""
+    from quicknav_core.env.lidar import lidar_window
+
+    g, beams, cell, max_range = 64, 64, 0.25, 2.6
+    lines = lidar_window(g, cell, max_range)
+    assert lines == 2 * 11 + 3
+    rng = np.random.default_rng(3)
+    n = 400
+    walls = rng.random((n, g, g)) < 0.04
+    walls[:, 0, :] = walls[:, -1, :] = walls[:, :, 0] = walls[:, :, -1] = True
+    pos = rng.uniform(cell, (g - 1) * cell, (n, 2)).astype(np.float32)
+    theta = rng.uniform(-np.pi, np.pi, n).astype(np.float32)
+    goal = np.full((n, 2), -10.0, np.float32)  # off the grid: walls only
+    args = (pos, theta, goal, walls, beams, 360.0, cell, max_range, 0.3, "crossings")
+    window_r, window_h = map(np.asarray, cast_batch(*args, lines))
+    whole_r, whole_h = map(np.asarray, cast_batch(*args, None))
+    assert (window_h == whole_h).all()
+    np.testing.assert_array_equal(window_r, whole_r)
+    # the sample reaches the range's edge: walls hit in its last cell, and beams that see nothing
+    hit = whole_h == HIT_WALL
+    assert (whole_r[hit] > max_range - cell).sum() > 200 and (whole_h == HIT_NONE).sum() > 200
