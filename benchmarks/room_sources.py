@@ -1,5 +1,5 @@
-"""Env steps/s by room source, same run: carved 16x16 (the paper's), generated floor plans at 16, 64
-and 128 cells, the shipped office map (map_server YAML + PGM) at 48 cells, and a 30 m floor plan at
+"""Env steps/s by room source, same run: carved 16x16 (the paper's), generated floor plans at 16, 64,
+128 and 256 cells, the shipped office map (map_server YAML + PGM) at 48 cells, and a 30 m floor plan at
 0.25 m cells (120) with a robot narrower than a cell and one wider.
 
     uv run python -m benchmarks.room_sources [--batch 1024] [--out benchmarks/results/room_sources.json]
@@ -33,6 +33,7 @@ def configs():
         ("floorplan 16", EnvConfig(rooms="floorplan", grid_size=16, room_size=8.0, **common)),
         ("floorplan 64", EnvConfig(rooms="floorplan", grid_size=64, room_size=32.0, **common)),
         ("floorplan 128", EnvConfig(rooms="floorplan", grid_size=128, room_size=64.0, **common)),
+        ("floorplan 256", EnvConfig(rooms="floorplan", grid_size=256, room_size=128.0, **common)),
         ("map office 48",
          EnvConfig(rooms="maps", maps={"train": [office]}, grid_size=48, room_size=24.0, **common)),
         # a 30 m floor at 0.25 m cells (the issue's building), doors 1 m wide: a robot narrower than

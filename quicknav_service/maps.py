@@ -182,10 +182,12 @@ def suggest_env(yaml_path: Path, ref: str) -> tuple[dict[str, Any], list[str]]:
 
 def limit_notes(suggested: dict[str, Any], max_grid_size: int) -> list[str]:
     """What this server's limits say about a suggested env (QUICKNAV_MAX_GRID_SIZE)."""
+    from quicknav_core.eval.map_fit import MAX_GRID
+
     grid = suggested.get("grid_size", 0)
     if grid > max_grid_size:
         return [f"grid_size {grid} is above this server's limit of {max_grid_size}"
-                f" (QUICKNAV_MAX_GRID_SIZE, which the operator can raise to 128): a job with this"
+                f" (QUICKNAV_MAX_GRID_SIZE, which the operator can raise to {MAX_GRID}): a job with this"
                 " env is refused here; crop the map to the part the robot drives"]  # fmt: skip
     return []
 

@@ -67,7 +67,7 @@ class Settings(BaseSettings):
     )
     max_envs: int = Field(4096, ge=1, le=1_048_576)
     max_total_steps: int = Field(200_000_000, ge=1)
-    max_grid_size: int = Field(64, ge=4, le=128)
+    max_grid_size: int = Field(64, ge=4, le=256)
     max_devices: int = Field(
         1, ge=1, le=1024,
         description="most devices one training job may span (TrainConfig.devices); set it to"

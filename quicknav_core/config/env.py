@@ -291,7 +291,7 @@ class EnvConfig(StrictModel):
         8.0, gt=0.0, le=1000.0, description="side of the square room, metres", json_schema_extra=TRACED
     )
     grid_size: int = Field(
-        16, ge=4, le=128, description="cells per side (outer ring is wall)", json_schema_extra=STATIC
+        16, ge=4, le=256, description="cells per side (outer ring is wall)", json_schema_extra=STATIC
     )
     carve_fraction: float = Field(
         0.8, gt=0.0, le=1.0, description="fraction of inner cells carved free"

@@ -209,7 +209,10 @@ def cast_lidar_bits(
 def lidar_window(grid_size: int, cell: float, max_range: float) -> int:
     """Grid lines per axis the caster must cross to see ``max_range`` from anywhere in a cell:
     those within ``ceil(max_range / cell)`` of the robot's cell on either side, one more each way
-    for rounding, at most the grid's ``g - 1``."""
+    for rounding, at most the grid's ``g - 1``. Grids up to 32 cells always take all their lines
+    (the bit-scan search over one word), so a range changes nothing compiled there."""
+    if grid_size <= 32:
+        return grid_size - 1
     reach = math.ceil(max_range / cell - 1e-9)
     return min(grid_size - 1, 2 * reach + 3)
 

@@ -19,7 +19,7 @@ from quicknav_core.config import EnvConfig
 from quicknav_core.env.clearance import disc_fits
 from quicknav_core.env.maps import MapError, load_map, reachable_only, to_cells
 
-MAX_GRID = 128  # EnvConfig.grid_size's upper bound
+MAX_GRID = 256  # EnvConfig.grid_size's upper bound
 # the step limit: this many times the steps the longest shortest path takes at full speed
 STEP_SLACK = 2.0
 

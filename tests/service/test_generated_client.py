@@ -125,7 +125,7 @@ def test_generated_client__a_bad_override_is_a_422_naming_the_field(gen):
     assert all(isinstance(e, gen.models.FieldError) for e in body.detail)
     [error] = body.detail
     assert error.loc == ["body", "overrides", "env.grid_size"]
-    assert error.type_ == "less_than_equal" and "less than or equal to 128" in error.msg, error.msg
+    assert error.type_ == "less_than_equal" and "less than or equal to 256" in error.msg, error.msg
 
 
 def test_generated_client__eval_of_the_train_job_by_job_id_is_accepted(gen, server):

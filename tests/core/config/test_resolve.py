@@ -140,7 +140,7 @@ def test_resolve__every_field_error_of_a_request_at_once():
     by_loc = {tuple(i["loc"]): i["msg"] for i in e.value.items}
     assert set(by_loc) == {("overrides", "env.gird_size"), ("overrides", "env.grid_size"),
                            ("overrides", "num_envs")}  # fmt: skip
-    assert "less than or equal to 128" in by_loc[("overrides", "env.grid_size")]
+    assert "less than or equal to 256" in by_loc[("overrides", "env.grid_size")]
     assert "greater than or equal to 1" in by_loc[("overrides", "num_envs")]
     with pytest.raises(ConfigError) as e:
         resolve_sweep({"space": "ppo", "overrides": {"trials": 0, "objectiv": "spl",
