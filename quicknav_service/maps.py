@@ -32,6 +32,7 @@ from quicknav_core.env.maps import (
     MAP_ID_PREFIX,
     YAML_SUFFIXES,
     MapError,
+    OccupancyMap,
     check_pixels,
     header_size,
     load_map,
@@ -159,19 +160,19 @@ def _canonical(files: list[UploadedFile], resolution: float | None, negate: bool
     return text.encode(), _suffix(image.filename), image.data
 
 
-def suggest_env(yaml_path: Path, ref: str) -> tuple[dict[str, Any], list[str]]:
-    """The env fields that drive the map at the default 0.5 m cells (grid, room, and a step limit
-    from its longest shortest path, as ``quicknav eval --map`` sets them), and what to know about
-    them: free space the grid loses, a map too large for any grid at these cells."""
+def suggest_env(yaml_path: Path, ref: str, m: OccupancyMap) -> tuple[dict[str, Any], list[str]]:
+    """The env fields that drive the map ``m`` (read from ``yaml_path``) at the default 0.5 m
+    cells (grid, room, and a step limit from its longest shortest path, as ``quicknav eval --map``
+    sets them), and what to know about them: free space the grid loses, a map too large for any
+    grid at these cells."""
     from quicknav_core.config import EnvConfig
     from quicknav_core.eval.map_fit import fit_map
 
     env = EnvConfig()
     assert env.cell_size == SUGGESTED_CELL_M
     try:
-        fit = fit_map(env, yaml_path)
+        fit = fit_map(env, yaml_path, loaded=m)
     except MapError as e:  # larger than any grid at 0.5 m cells, or nowhere a robot fits
-        m = load_map(yaml_path)
         grid = max(math.ceil(x / SUGGESTED_CELL_M - 1e-9) for x in m.size_m) + 2
         return ({"rooms": "maps", "maps": {"train": [ref]}, "grid_size": grid,
                  "room_size": grid * SUGGESTED_CELL_M}, [str(e)])  # fmt: skip
@@ -206,7 +207,6 @@ class MapLibrary:
             free_thresh: float | None = None) -> dict[str, Any]:  # fmt: skip
         """Check an upload by reading it as the env will, store it; its metadata."""
         from PIL import Image
-
 
         for field, v in (("resolution", resolution), ("occupied_thresh", occupied_thresh),
                          ("free_thresh", free_thresh)):  # fmt: skip
@@ -270,7 +270,7 @@ class MapLibrary:
                     existing["name"] = name[:200]
                     self.artifacts.put_bytes(f"{MAPS}/{map_id}", "meta.json", json.dumps(existing).encode())
                 return existing
-            suggested, notes = suggest_env(folder / "map.yaml", MAP_ID_PREFIX + map_id)
+            suggested, notes = suggest_env(folder / "map.yaml", MAP_ID_PREFIX + map_id, m)
             notes = [n.replace(str(folder / "map.yaml"), image_name) for n in notes]
         width_m, height_m = m.size_m
         step = map_picture_step(m.blocked.shape)

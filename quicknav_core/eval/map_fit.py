@@ -17,7 +17,7 @@ import numpy as np
 
 from quicknav_core.config import EnvConfig
 from quicknav_core.env.clearance import disc_fits
-from quicknav_core.env.maps import MapError, load_map, reachable_only, to_cells
+from quicknav_core.env.maps import MapError, OccupancyMap, load_map, reachable_only, to_cells
 
 MAX_GRID = 256  # EnvConfig.grid_size's upper bound
 # the step limit: this many times the steps the longest shortest path takes at full speed
@@ -63,9 +63,11 @@ class MapFit:
         return []
 
 
-def fit_map(env: EnvConfig, path: str | Path, read: dict[str, Any] | None = None) -> MapFit:
-    """``env``'s policy on the map at ``path`` (MapError when it cannot drive it)."""
-    m = load_map(path, **(read or {}))
+def fit_map(env: EnvConfig, path: str | Path, read: dict[str, Any] | None = None,
+            loaded: OccupancyMap | None = None) -> MapFit:  # fmt: skip
+    """``env``'s policy on the map at ``path`` (MapError when it cannot drive it); ``loaded``: the
+    map already read from ``path`` (not read again)."""
+    m = loaded if loaded is not None else load_map(path, **(read or {}))
     cell = env.cell_size
     width_m, height_m = m.size_m
     side = max(math.ceil(width_m / cell - 1e-9), math.ceil(height_m / cell - 1e-9)) + 2
