@@ -109,7 +109,8 @@ def eval_cmd(
         Path | None,
         typer.Option("--map", help="Evaluate on this map (a map_server .yaml): the grid follows"
                      " the map at the policy's cell size and the step limit its longest path"
-                     " (--set wins over both)."),
+                     " (--set wins over both, but --set grid_size/room_size give the cell size"
+                     " the map is laid at)."),
     ] = None,
     print_only: PrintConfigOpt = False,
 ) -> None:
@@ -120,9 +121,12 @@ def eval_cmd(
         fail(f"--split {split!r}: allowed values are test and train")
     request = eval_request(run, policy, episodes, seed, deterministic, split, config, set_,
                            robustness)  # fmt: skip
-    if on_map is not None:  # the map over --config's env, and --set over both
+    if on_map is not None:  # the map over --config's env, and --set over both but for the grid:
+        # --set grid_size / room_size give the cells the map is laid at (map_overrides read them),
+        # the map gives how many
         base = read_json(config) if config else {}
-        request["env"] = {**base, **map_overrides(request, on_map, say=not print_only), **env_sets(set_)}
+        sets = {k: v for k, v in env_sets(set_).items() if k not in ("grid_size", "room_size")}
+        request["env"] = {**base, **map_overrides(request, on_map, say=not print_only), **sets}
     cfg = resolved(resolve_eval, request, trained_env=run_env)
     if print_only:
         print_config(cfg)

@@ -136,8 +136,8 @@ def test_map_fit__grid_step_limit_and_frame_follow_the_map():
     assert again.grid_size == fit.grid_size and again.room_size == pytest.approx(fit.room_size)
     from quicknav_core.env.maps import MapError
 
-    with pytest.raises(MapError, match=r"a grid of \d+, above the 128 an env may have.*cells of at least"):
-        fit_map(EnvConfig(**{**PLAN, "room_size": 3.6}), OFFICE)  # 0.15 m cells
+    with pytest.raises(MapError, match=r"a grid of \d+, above the 256 an env may have.*cells of at least"):
+        fit_map(EnvConfig(**{**PLAN, "room_size": 1.8, "max_wheel_speed": 0.7}), OFFICE)  # 0.075 m cells
 
 
 def test_eval_map__lies_over_a_config_env_and_under_set(tmp_path):
@@ -158,3 +158,10 @@ def test_eval_map__lies_over_a_config_env_and_under_set(tmp_path):
     assert env["rooms"] == "maps" and env["maps"]["train"] == [OFFICE], env
     assert env["grid_size"] == fit_map(EnvConfig(**PLAN), OFFICE).grid_size and env["lidar_beams"] == 16
     assert env["max_steps"] == 900
+    # a baseline's cell size from --set: the map is laid at it, the grid follows the map
+    r = CliRunner().invoke(app, ["eval", "--policy", "oracle", "--map", OFFICE, "--set", "room_size=4",
+                                 "--set", "env.grid_size=16", "--print-config"])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    env = json.loads(r.stdout)["env"]
+    fine = fit_map(EnvConfig(room_size=4.0, grid_size=16), OFFICE)  # 0.25 m cells
+    assert env["grid_size"] == fine.grid_size > 64 and env["room_size"] == pytest.approx(fine.room_size)
