@@ -227,12 +227,36 @@ def _window_bits(origin: jax.Array, line_bits: jax.Array, lines: int) -> tuple[j
     return k0.astype(jnp.float32), jnp.where(ahead[:, None], near[1:], near[:-1])
 
 
+def _near_words(entered: jax.Array, origin_b: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Each line's 64 cells around the origin along the other axis, as two words: (the first
+    cell's index b0, (lines, 2) uint32), cells b0 .. b0 + 63, b0 = floor(origin_b) - 32 (cells
+    off the grid read as free). A crossing within range of the origin lies among them."""
+    lines, w = entered.shape
+    zero = jnp.zeros((lines, 1), jnp.uint32)
+    padded = jnp.concatenate([zero, entered, zero], axis=1)  # word j + 1 holds cells 32j..32j+31
+    start = jnp.floor(origin_b).astype(jnp.int32)  # cell b0 = start - 32 is bit `start` of padded
+    three = jax.lax.dynamic_slice_in_dim(padded, start // 32, 3, axis=1)
+    r = (start % 32).astype(jnp.uint32)
+    up = jnp.uint32(32) - r  # a shift by 32 gives 0 (r = 0: the words are aligned)
+    lo = jnp.right_shift(three[:, 0], r) | jnp.left_shift(three[:, 1], up)
+    hi = jnp.right_shift(three[:, 1], r) | jnp.left_shift(three[:, 2], up)
+    return start - 32, jnp.stack([lo, hi], axis=1)
+
+
 def _window_crossings(origin_a, origin_b, dir_a, dir_b, k0, entered):
-    """``_crossings`` over the window's lines ``a = k0 .. k0 + lines - 1``."""
-    k = k0 + jnp.arange(entered.shape[0], dtype=jnp.float32)
+    """``_crossings`` over the window's lines ``a = k0 .. k0 + lines - 1``. With rows of more than
+    two words and a window of at most 63 lines (every crossing within range lies within 31 cells of
+    the origin along the other axis), the walls are read from each line's two words around the
+    origin (``_near_words``) instead of all of its words; crossings beyond range may then read
+    "free", which cannot change what the beam reports."""
+    lines, w = entered.shape
+    k = k0 + jnp.arange(lines, dtype=jnp.float32)
     inv = 1.0 / jnp.where(jnp.abs(dir_a) < 1e-12, 1e-12, dir_a)
     t = (k[None, :] - origin_a) * inv[:, None]
     idx = jnp.floor(origin_b + t * dir_b[:, None]).astype(jnp.int32)
+    if w > 2 and lines <= 63:
+        b0, near = _near_words(entered, origin_b)
+        return t, read_bit(near[None, :, :], idx - b0)
     return t, read_bit(entered[None, :, :], idx)
 
 

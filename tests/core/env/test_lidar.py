@@ -165,13 +165,14 @@ def test_lidar_method__envs_step_identically_with_either_caster():
         np.testing.assert_array_equal(out["crossings"].reward, out["dda"].reward)
 
 
-def test_lidar__range_window_sees_what_the_whole_grid_sees():
+@pytest.mark.parametrize("g", [64, 128])  # 2 words per row; 4 (each line's walls near the robot)
+def test_lidar__range_window_sees_what_the_whole_grid_sees(g):
     """The caster crosses only the lines within range of the robot (``lidar_window``): on sparse
     walls, where many hits lie near the range's edge and near the grid's border, it returns exactly
     what crossing every line of the grid returns."""
     from quicknav_core.env.lidar import lidar_window
 
-    g, beams, cell, max_range = 64, 64, 0.25, 2.6
+    beams, cell, max_range = 64, 0.25, 2.6
     lines = lidar_window(g, cell, max_range)
     assert lines == 2 * 11 + 3
     rng = np.random.default_rng(3)
