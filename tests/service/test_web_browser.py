@@ -135,11 +135,11 @@ def test_browser__asks_for_the_token_and_signs_in(server, page, shots):
 def test_browser__form_shows_the_servers_error_next_to_the_field(server, page, shots):
     page.goto(server + "/ui/submit")
     page.wait_for_selector("#submit-form")
-    page.fill("#f-env\\.grid_size", "200")
+    page.fill("#f-env\\.grid_size", "300")
     page.click("#submit")
     field = page.locator('.field[data-key="env.grid_size"]')
     field.locator(".field-error").wait_for()
-    assert "128" in field.locator(".field-error").inner_text()  # the allowed range, from the server
+    assert "256" in field.locator(".field-error").inner_text()  # the allowed range, from the server
     assert "invalid" in field.get_attribute("class")
     # an unknown key in the free-form box is reported there
     page.fill("#f-env\\.grid_size", "")
@@ -169,7 +169,7 @@ def test_browser__form_shows_every_field_error_at_once(server, page, shots):
     errors = {key: page.locator(f'.field[data-key="{key}"] .field-error').inner_text()
               for key in ("env.grid_size", "total_steps", "overrides")}  # fmt: skip
     page.screenshot(path=shots / "form-errors.png", full_page=True)
-    assert "128" in errors["env.grid_size"], errors  # each with its allowed range
+    assert "256" in errors["env.grid_size"], errors  # each with its allowed range
     assert "1" in errors["total_steps"] and "greater" in errors["total_steps"], errors
     assert "no_such_field" in errors["overrides"], errors
     assert page.url.endswith("/ui/submit")
