@@ -14,7 +14,8 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from quicknav_core.config import SweepRequest, TrainRequest
-from quicknav_core.config.resolve import EvalFields
+from quicknav_core.config.base import exactly_one_of
+from quicknav_core.config.resolve import EvalFields, not_both_ways
 from quicknav_service.jobs.models import JobKind, JobStatus
 
 # Ids are shown (CLI, web) by their first 8 characters; shorter prefixes match too many jobs.
@@ -29,6 +30,8 @@ class EvalJobCreate(EvalFields):
     """Evaluate a train job's checkpoint (``job_id``) or a baseline (``policy``) on fixed-seed
     held-out episodes. The fields besides ``job_id`` are the library's (``EvalFields``), one model
     for both doors."""
+
+    model_config = exactly_one_of("job_id", "policy", also=not_both_ways)
 
     job_id: str | None = Field(
         None, min_length=MIN_ID_PREFIX, max_length=200,

@@ -19,7 +19,15 @@ from typing import TYPE_CHECKING, Annotated, ClassVar, Literal
 
 from pydantic import Field, model_validator
 
-from quicknav_core.config.base import STATIC, TRACED, Split, StrictModel, static_fields, traced
+from quicknav_core.config.base import (
+    STATIC,
+    TRACED,
+    Flag,
+    Split,
+    StrictModel,
+    static_fields,
+    traced,
+)
 from quicknav_core.env.constants import LATENCY_MAX_STEPS
 
 if TYPE_CHECKING:  # pragma: no cover - import only for type checkers, keeps this module JAX-free
@@ -358,15 +366,15 @@ class EnvConfig(StrictModel):
         300, ge=1, le=1_000_000, description="episode truncation limit",
         json_schema_extra=traced("max_steps_in_episode"),
     )
-    observe_goal: bool = Field(
+    observe_goal: Flag = Field(
         True, description="include goal position/distance/bearing in obs", json_schema_extra=STATIC
     )
-    observe_pose: bool = Field(
+    observe_pose: Flag = Field(
         True, description="include the robot's position and heading in the room frame in obs"
         " (a policy meant for buildings it never saw leaves them out: they are the room's frame,"
         " not the robot's)", json_schema_extra=STATIC,
     )  # fmt: skip
-    observe_plan: bool = Field(
+    observe_plan: Flag = Field(
         False, description="include the global plan in obs: the next waypoints of the shortest"
         " path on the known map to the goal, in the robot's frame, and the path's length left"
         " (the env plans at every episode start; see docs: a learned local planner)",
@@ -379,12 +387,12 @@ class EnvConfig(StrictModel):
     plan_waypoints: int = Field(
         2, ge=1, le=8, description="waypoints observed (observe_plan)", json_schema_extra=STATIC
     )
-    end_on_collision: bool = Field(
+    end_on_collision: Flag = Field(
         False, description="a collision (touching a wall or an obstacle) ends the episode, a"
         " failure, as navigation benchmarks count it (off: the paper's env, where the robot slides"
         " along the wall and pays collision_penalty)", json_schema_extra=STATIC,
     )  # fmt: skip
-    final_obs: bool = Field(
+    final_obs: Flag = Field(
         True,
         description="put the pre-reset observation in info['final_obs'] (costs a 2nd lidar cast;"
         " trainers switch it off: none of them reads it)",

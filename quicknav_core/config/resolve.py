@@ -14,9 +14,9 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from typing import Any, Literal, TypeVar
 
-from pydantic import AliasChoices, BaseModel, Field, ValidationError, model_validator
+from pydantic import AliasChoices, BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from quicknav_core.config.base import Split, StrictModel
+from quicknav_core.config.base import Flag, Split, StrictModel, exactly_one_of
 from quicknav_core.config.env import EnvConfig
 from quicknav_core.config.errors import ConfigError, error_items, unknown_field_msg
 from quicknav_core.config.eval import EvalConfig
@@ -47,7 +47,10 @@ def _settings_hint(key: str, config: type[BaseModel], what: str) -> str | None:
 class TrainRequest(StrictModel):
     """A training request: a preset or a full config, plus dotted-key overrides applied on top."""
 
-    preset: str | None = Field(None, description="a training preset name", examples=["demo"])
+    model_config = exactly_one_of("preset", "config")
+
+    preset: str | None = Field(None, description="a training preset name (GET /presets lists them)",
+                               examples=["demo"], json_schema_extra={"enum": [*PRESETS, None]})  # fmt: skip
     config: TrainConfig | None = Field(None, description="a full TrainConfig")
     overrides: dict[str, Any] = Field(
         default_factory=dict,
@@ -75,6 +78,8 @@ class SweepRequest(StrictModel):
     ``parallel`` and ``total_steps`` are shorthands for the same.
     """
 
+    model_config = exactly_one_of("space", "config")
+
     space: SpaceName | None = Field(None, description="a built-in search space (the paper's)")
     config: SweepConfig | None = Field(None, description="a full SweepConfig")
     trials: int | None = Field(None, ge=1, le=100_000, description="finished trials wanted")
@@ -96,9 +101,21 @@ class SweepRequest(StrictModel):
         return self
 
 
+def not_both_ways(schema: dict[str, Any]) -> None:
+    """EvalFields' rule in its JSON schema: ``stochastic`` (deprecated) and ``deterministic`` may
+    both be sent only if they agree (one is the other's opposite)."""
+    schema["not"] = {"anyOf": [
+        {"required": ["stochastic", "deterministic"],
+         "properties": {"stochastic": {"const": value}, "deterministic": {"const": value}}}
+        for value in (True, False)
+    ]}  # fmt: skip
+
+
 class EvalFields(StrictModel):
     """What every evaluation request holds besides the name of a trained policy: one model that
     the library's ``EvalRequest`` and the service's eval job body both extend."""
+
+    model_config = ConfigDict(json_schema_extra=not_both_ways)
 
     policy: Literal["random", "oracle", "dwa"] | None = Field(None, description="a baseline policy")
     env: dict[str, Any] = Field(
@@ -110,14 +127,14 @@ class EvalFields(StrictModel):
     episodes: int = Field(100, ge=1, le=100_000)
     seed: int = Field(0, ge=0, le=2**31 - 1, description="episode seed: same seed, same episodes")
     split: Split = Field("test", description="room bank: test (held out) or train")
-    deterministic: bool = Field(True, description="act with the policy's mean, not a sample")
-    robustness: bool = Field(
+    deterministic: Flag = Field(True, description="act with the policy's mean, not a sample")
+    robustness: Flag = Field(
         False,
         description="also run the episodes at fixed levels of lidar noise, beam dropout, range bias,"
         " action latency and wheel asymmetry: success and SPL per level in eval.json's"
         " 'robustness', drawn in robustness.png",
     )
-    stochastic: bool | None = Field(
+    stochastic: Flag | None = Field(
         None, deprecated=True,
         description="deprecated: the opposite of 'deterministic'; send 'deterministic' instead",
     )  # fmt: skip

@@ -11,7 +11,7 @@ from typing import Annotated, Literal
 
 from pydantic import Field, model_validator
 
-from quicknav_core.config.base import TRACED, StrictModel
+from quicknav_core.config.base import TRACED, Flag, StrictModel, tag_required
 from quicknav_core.config.env import EnvConfig
 
 MAX_DEVICES = 1024  # local accelerators one process can address
@@ -30,6 +30,8 @@ _INIT_LOG_STD = (
 class MLPNetwork(StrictModel):
     """ReLU MLP; ``memory_size > 0`` adds the paper's memory head (a recurrent carry)."""
 
+    model_config = tag_required("kind")
+
     kind: Literal["mlp"] = "mlp"
     hidden_sizes: tuple[int, ...] = Field((128, 128), min_length=1, max_length=8)
     memory_size: int = Field(0, ge=0, le=1024, description="memory head size; 0 = memoryless")
@@ -38,7 +40,7 @@ class MLPNetwork(StrictModel):
         description="dropout after each hidden layer; no trainer applies it (PPO's probability ratio"
         " needs the same network when it collects and when it updates), so resolve refuses > 0",
     )  # fmt: skip
-    learned_log_std: bool | None = Field(None, description=_LEARNED_LOG_STD)
+    learned_log_std: Flag | None = Field(None, description=_LEARNED_LOG_STD)
     init_log_std: float | None = Field(None, ge=-5.0, le=2.0, description=_INIT_LOG_STD)
 
     @model_validator(mode="after")
@@ -52,15 +54,19 @@ class MLPNetwork(StrictModel):
 class LSTMNetwork(StrictModel):
     """Stacked LSTM."""
 
+    model_config = tag_required("kind")
+
     kind: Literal["lstm"] = "lstm"
     num_layers: int = Field(2, ge=1, le=16)
     hidden_size: int = Field(15, ge=1, le=1024)
-    learned_log_std: bool | None = Field(None, description=_LEARNED_LOG_STD)
+    learned_log_std: Flag | None = Field(None, description=_LEARNED_LOG_STD)
     init_log_std: float | None = Field(None, ge=-5.0, le=2.0, description=_INIT_LOG_STD)
 
 
 class GTrXLNetwork(StrictModel):
     """Gated Transformer-XL."""
+
+    model_config = tag_required("kind")
 
     kind: Literal["gtrxl"] = "gtrxl"
     embed_size: int = Field(8, ge=1, le=1024)
@@ -69,7 +75,7 @@ class GTrXLNetwork(StrictModel):
     num_layers: int = Field(2, ge=1, le=16)
     memory_length: int = Field(32, ge=1, le=1024)
     gate_bias: float = Field(2.0, ge=-10.0, le=10.0)
-    learned_log_std: bool | None = Field(None, description=_LEARNED_LOG_STD)
+    learned_log_std: Flag | None = Field(None, description=_LEARNED_LOG_STD)
     init_log_std: float | None = Field(None, ge=-5.0, le=2.0, description=_INIT_LOG_STD)
 
 
@@ -85,6 +91,8 @@ def network_is_recurrent(network: MLPNetwork | LSTMNetwork | GTrXLNetwork) -> bo
 class PPOConfig(StrictModel):
     """PPO. Memoryless MLPs train with rejax's PPO; recurrent networks with QuickNav's recurrent PPO."""
 
+    model_config = tag_required("name")
+
     name: Literal["ppo"] = "ppo"
     learning_rate: float = Field(3e-4, gt=0.0, le=1.0, json_schema_extra=TRACED)
     num_steps: int = Field(128, ge=1, le=100_000, description="rollout length per env per update")
@@ -96,7 +104,7 @@ class PPOConfig(StrictModel):
     ent_coef: float = Field(0.01, ge=0.0, le=10.0, json_schema_extra=TRACED)
     vf_coef: float = Field(0.5, ge=0.0, le=100.0, json_schema_extra=TRACED)
     max_grad_norm: float = Field(0.5, gt=0.0, le=1e6, json_schema_extra=TRACED)
-    anneal_lr: bool = Field(True, description="decay the learning rate linearly to 0")
+    anneal_lr: Flag = Field(True, description="decay the learning rate linearly to 0")
     implementation: Literal["auto", "rejax", "quicknav"] = Field(
         "auto", description="auto: rejax for memoryless MLPs, QuickNav's recurrent PPO otherwise"
     )
@@ -104,6 +112,8 @@ class PPOConfig(StrictModel):
 
 class SACConfig(StrictModel):
     """Soft actor-critic (rejax), memoryless MLPs only."""
+
+    model_config = tag_required("name")
 
     name: Literal["sac"] = "sac"
     learning_rate: float = Field(3e-4, gt=0.0, le=1.0, json_schema_extra=TRACED)
@@ -120,6 +130,8 @@ class SACConfig(StrictModel):
 
 class TD3Config(StrictModel):
     """TD3 (rejax), memoryless MLPs only."""
+
+    model_config = tag_required("name")
 
     name: Literal["td3"] = "td3"
     learning_rate: float = Field(3e-4, gt=0.0, le=1.0, json_schema_extra=TRACED)
@@ -150,7 +162,7 @@ class CurriculumConfig(StrictModel):
     The eval banks never use the pool.
     """
 
-    enabled: bool = Field(False, description="train from short paths to long ones")
+    enabled: Flag = Field(False, description="train from short paths to long ones")
     levels: tuple[float, ...] = Field(
         (0.25, 0.5, 0.75), min_length=1, max_length=16,
         description="path-length limits of the levels before the full pool, as fractions of the"

@@ -79,14 +79,19 @@ def _crossings(
     (t (B, g-1), wall (B, g-1)); ``wall`` is meaningful where the crossing is ahead (t >= 0), and,
     for the opposite beam, where t < 0: the same crossing point seen from the other side.
     """
-    g1 = entered.shape[0]
-    k = jnp.arange(1, g1 + 1, dtype=jnp.float32)
+    t, idx = _crossing_points(origin_a, origin_b, dir_a, dir_b, 1.0, entered.shape[0])
+    return t, read_bit(entered[None, :, :], idx)
+
+
+def _crossing_points(origin_a, origin_b, dir_a, dir_b, k0, lines: int):
+    """Signed distances (B, lines) to the lines ``a = k0 .. k0 + lines - 1`` and the cell index
+    along ``b`` of each crossing. The index leaves [0, g) only where the crossing lies outside the
+    room, i.e. beyond the outer wall ring that every beam hits first; whatever such a crossing
+    reads cannot win the min."""
+    k = k0 + jnp.arange(lines, dtype=jnp.float32)
     inv = 1.0 / jnp.where(jnp.abs(dir_a) < 1e-12, 1e-12, dir_a)
     t = (k[None, :] - origin_a) * inv[:, None]
-    # The index leaves [0, g) only where the crossing lies outside the room, i.e. beyond the outer
-    # wall ring that every beam hits first; whatever such a crossing reads cannot win the min.
-    idx = jnp.floor(origin_b + t * dir_b[:, None]).astype(jnp.int32)
-    return t, read_bit(entered[None, :, :], idx)
+    return t, jnp.floor(origin_b + t * dir_b[:, None]).astype(jnp.int32)
 
 
 def beam_directions(theta: jax.Array, num_beams: int, fov_deg: float, first: int | None = None):
@@ -250,10 +255,7 @@ def _window_crossings(origin_a, origin_b, dir_a, dir_b, k0, entered):
     origin (``_near_words``) instead of all of its words; crossings beyond range may then read
     "free", which cannot change what the beam reports."""
     lines, w = entered.shape
-    k = k0 + jnp.arange(lines, dtype=jnp.float32)
-    inv = 1.0 / jnp.where(jnp.abs(dir_a) < 1e-12, 1e-12, dir_a)
-    t = (k[None, :] - origin_a) * inv[:, None]
-    idx = jnp.floor(origin_b + t * dir_b[:, None]).astype(jnp.int32)
+    t, idx = _crossing_points(origin_a, origin_b, dir_a, dir_b, k0, lines)
     if w > 2 and lines <= 63:
         b0, near = _near_words(entered, origin_b)
         return t, read_bit(near[None, :, :], idx - b0)

@@ -7,9 +7,13 @@ import logging
 from typing import Any
 
 from fastapi import FastAPI, Request
+from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from fastapi.routing import iter_route_contexts
 from pydantic import BaseModel
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import compile_path
 
 from quicknav_core.config.resolve import explain_unknown_fields
 from quicknav_service.artifacts import ArtifactUnavailable
@@ -86,8 +90,41 @@ def _field_errors(request: Request, exc: RequestValidationError) -> list[dict[st
     return [{**next(explained), "loc": i["loc"]} if i["loc"][:1] == ["body"] else i for i in items]
 
 
+class RouteTable:
+    """The methods the app serves at each path, for answers the router does not give whole: a
+    405's ``Allow`` (Starlette's router names only the first route that matched the path, so a
+    path served by two routes, GET and POST /maps, answered ``Allow: POST``) and the cross-site
+    guard's "is there a POST here at all" (else the router's 404 or 405 answers). Built on first
+    use, when every router has been included."""
+
+    def __init__(self, app: FastAPI):
+        self.app = app
+        self._table: list[tuple[Any, int, frozenset[str]]] | None = None
+
+    def methods_at(self, path: str) -> list[str]:
+        """The methods of the routes whose path matches, the most literal ones only: where
+        ``/jobs/eval`` (POST) and ``/jobs/{job_id}`` (GET, DELETE) both match, the document (as
+        OpenAPI reads paths: a literal one before a templated one) says POST."""
+        if self._table is None:
+            self._table = [(compile_path(r.path_format or r.path)[0], (r.path_format or r.path).count("{"),
+                            frozenset(r.methods)) for r in iter_route_contexts(self.app.routes)
+                           if r.methods and r.path]  # fmt: skip
+        matched = [(params, methods) for regex, params, methods in self._table if regex.match(path)]
+        fewest = min((params for params, _ in matched), default=0)
+        return sorted({m for params, methods in matched if params == fewest for m in methods})
+
+
 def install(app: FastAPI) -> None:
     """The handlers that turn errors into answers."""
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(request: Request, exc: StarletteHTTPException):
+        if exc.status_code == 405:
+            allow = request.app.state.route_table.methods_at(request.url.path)
+            return JSONResponse({"detail": f"method {request.method} is not allowed here; allowed:"
+                                           f" {', '.join(allow)}"},
+                                status_code=405, headers={"Allow": ", ".join(allow)})  # fmt: skip
+        return await http_exception_handler(request, exc)
 
     @app.exception_handler(RequestValidationError)
     async def validation(request: Request, exc: RequestValidationError) -> JSONResponse:

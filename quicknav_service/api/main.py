@@ -94,13 +94,15 @@ def create_app(
     app.state.streams = StreamSlots(settings.sse_max_per_client, settings.sse_max_total)
     app.state.event_hub = EventHub(store)
     app.state.workers = []
+    app.state.route_table = errors.RouteTable(app)
     docs.install(app)
     errors.install(app)
     openapi.install(app, api_token=settings.api_token is not None,
-                    metrics_token=settings.metrics_token is not None)  # fmt: skip
+                    metrics_token=settings.metrics_token is not None,
+                    max_eval_episodes=settings.max_eval_episodes)  # fmt: skip
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes,
                        uploads={"/maps": settings.max_map_upload_bytes})  # fmt: skip
-    app.add_middleware(CrossSiteGuard, origins=settings.trusted_origins)
+    app.add_middleware(CrossSiteGuard, origins=settings.trusted_origins, routes=app.state.route_table)
     app.add_middleware(TrustedHosts, hosts=settings.trusted_hosts)
     app.add_middleware(SecurityHeaders)
     app.add_middleware(RequestMetrics)  # outermost: it sees every answer, refusals included
@@ -110,7 +112,7 @@ def create_app(
     app.include_router(artifacts.router)
     app.include_router(maps.router)
     app.include_router(ops.router)
-    app.include_router(_documented(web.auth, {"POST": errors.responses(400, 401, 413, 422)}))
+    app.include_router(_documented(web.auth, {"POST": errors.responses(400, 401, 403, 413, 415, 422, 429)}))
     app.include_router(web.router)
     return app
 

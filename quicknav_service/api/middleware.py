@@ -94,11 +94,16 @@ class CrossSiteGuard:
     a browser: where a browser says where a request comes from (``Origin``), it must be this
     server (or QUICKNAV_ALLOWED_ORIGINS), and a POST must carry a JSON body or the web view's
     header, which a form on another site cannot send without a preflight this API never grants
-    (methods other than GET, HEAD and POST always need one)."""
+    (methods other than GET, HEAD and POST always need one). A POST to a path with no POST
+    route passes on to the router's 404 or 405 (with ``Allow``): nothing runs there."""
 
-    def __init__(self, app, origins: list[str]):
+    def __init__(self, app, origins: list[str], routes=None):
         self.app = app
         self.origins = set(origins)
+        self.routes = routes  # the app's RouteTable (api.errors)
+
+    def _posted_to_a_route(self, scope) -> bool:
+        return self.routes is None or "POST" in self.routes.methods_at(scope["path"])
 
     async def __call__(self, scope, receive, send):
         if scope["type"] != "http" or scope["method"] in SAFE_METHODS:
@@ -113,7 +118,7 @@ class CrossSiteGuard:
                     " allowed: the server's own pages and QUICKNAV_ALLOWED_ORIGINS")},
                     status_code=403)  # fmt: skip
                 return await response(scope, receive, send)
-        if scope["method"] == "POST":
+        if scope["method"] == "POST" and self._posted_to_a_route(scope):
             kind = (_header(scope, b"content-type") or b"").split(b";")[0].strip().lower()
             # a map upload is a file form: safe as any POST here, because a browser session
             # needs the web header anyway (require_token) and a token never rides cross-site

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import copy
 from typing import Any
 
 from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
+
+from quicknav_core.config.base import EXACTLY_ONE_OF
 
 
 def _errors_as_json(spec: dict[str, Any]) -> dict[str, Any]:
@@ -32,16 +35,82 @@ def _security_as_configured(spec: dict[str, Any], api_token: bool, metrics_token
     return spec
 
 
-def install(app: FastAPI, api_token: bool = True, metrics_token: bool = False) -> None:
+def _variant_name(model: str, field: str) -> str:
+    return model + "".join(part.capitalize() for part in field.split("_"))
+
+
+def _exactly_one_as_variants(spec: dict[str, Any]) -> dict[str, Any]:
+    # a request that takes exactly one of two fields (x-exactly-one-of, set by the models) is
+    # published as a oneOf of two complete objects, one per field: the field required and not
+    # null, the other null or absent. A generated client gets a model per variant (a oneOf
+    # beside the object's own properties gave it models without the other fields), and a
+    # request the document calls valid is one the server accepts.
+    schemas = spec.get("components", {}).get("schemas", {})
+    for name, schema in list(schemas.items()):
+        pair = schema.pop(EXACTLY_ONE_OF, None)
+        if not pair:
+            continue
+        refs = []
+        for field, other in (pair, pair[::-1]):
+            variant = copy.deepcopy(schema)
+            props = variant["properties"]
+            given = [s for s in props[field].get("anyOf", [props[field]]) if s.get("type") != "null"]
+            keep = {k: v for k, v in props[field].items() if k not in ("anyOf", "default")}
+            if "enum" in keep:
+                keep["enum"] = [v for v in keep["enum"] if v is not None]
+            props[field] = {**keep, **given[0]} if len(given) == 1 else {**keep, "anyOf": given}
+            props[other] = {"type": "null", "description": f"not with {field}"}
+            variant["required"] = [field, *(f for f in variant.get("required", ()) if f != field)]
+            variant["title"] = _variant_name(name, field)
+            variant["description"] = f"{schema.get('description', name)} (with {field!r})"
+            schemas[variant["title"]] = variant
+            refs.append({"$ref": f"#/components/schemas/{variant['title']}"})
+        schemas[name] = {"title": name, "description": schema.get("description", ""), "oneOf": refs}
+    return spec
+
+
+def _form_fields_without_null(spec: dict[str, Any]) -> dict[str, Any]:
+    # a multipart form has no null: an optional field is one left out. FastAPI documents an
+    # optional form field as "X or null", and a client that sends the text "null" gets a 422
+    schemas = spec.get("components", {}).get("schemas", {})
+    for operation in (op for path in spec.get("paths", {}).values() for op in path.values()):
+        form = operation.get("requestBody", {}).get("content", {}).get("multipart/form-data", {})
+        ref = form.get("schema", {}).get("$ref", "")
+        body = schemas.get(ref.rsplit("/", 1)[-1], {}) if ref else form.get("schema", {})
+        for name, prop in body.get("properties", {}).items():
+            kinds = [k for k in prop.get("anyOf", ()) if k.get("type") != "null"]
+            if "anyOf" in prop and len(kinds) == 1:
+                body["properties"][name] = {**{k: v for k, v in prop.items() if k != "anyOf"}, **kinds[0]}
+                body["properties"][name].pop("default", None)
+    return spec
+
+
+def _server_limits(spec: dict[str, Any], max_eval_episodes: int | None) -> dict[str, Any]:
+    # an eval job's episodes are capped by this server's QUICKNAV_MAX_EVAL_EPISODES (below the
+    # library's own ceiling): the document states the cap this server applies
+    if max_eval_episodes is None:
+        return spec
+    for name, schema in spec.get("components", {}).get("schemas", {}).items():
+        episodes = schema.get("properties", {}).get("episodes")
+        if name.startswith("EvalJobCreate") and episodes is not None:
+            episodes["maximum"] = min(episodes.get("maximum", max_eval_episodes), max_eval_episodes)
+            episodes["description"] = "episodes to run (this server's limit: QUICKNAV_MAX_EVAL_EPISODES)"
+    return spec
+
+
+def install(app: FastAPI, api_token: bool = True, metrics_token: bool = False,
+            max_eval_episodes: int | None = None) -> None:
     """Build the document once, on first request, from the app's routes (with the token the
-    server asks for: none, when it was started without one)."""
+    server asks for: none, when it was started without one, and this server's limits)."""
 
     def openapi() -> dict[str, Any]:
         if app.openapi_schema is None:
-            app.openapi_schema = _security_as_configured(_errors_as_json(get_openapi(
-                title=app.title, version=app.version, description=app.description,
-                routes=app.routes, separate_input_output_schemas=app.separate_input_output_schemas,
-            )), api_token, metrics_token)  # fmt: skip
+            spec = get_openapi(title=app.title, version=app.version, description=app.description,
+                               routes=app.routes,
+                               separate_input_output_schemas=app.separate_input_output_schemas)  # fmt: skip
+            spec = _form_fields_without_null(_exactly_one_as_variants(_errors_as_json(spec)))
+            spec = _security_as_configured(spec, api_token, metrics_token)
+            app.openapi_schema = _server_limits(spec, max_eval_episodes)
         return app.openapi_schema
 
     app.openapi = openapi

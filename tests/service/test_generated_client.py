@@ -84,7 +84,7 @@ def gen(server, tmp_path_factory):
 
 def _submit_demo(gen):
     answer = gen.submit_train.sync_detailed(client=gen.client,
-                                            body=gen.models.TrainRequest(preset="demo"))  # fmt: skip
+                                            body=gen.models.TrainRequestPreset(preset="demo"))  # fmt: skip
     assert answer.status_code == 202, answer.content
     assert isinstance(answer.parsed, gen.models.JobPublic), answer.parsed
     return answer
@@ -109,15 +109,15 @@ def test_generated_client__submits_a_demo_train_job_and_reads_it_back(gen):
 
 def test_generated_client__without_the_token_is_a_typed_401(gen):
     answer = gen.submit_train.sync_detailed(client=gen.anonymous,
-                                            body=gen.models.TrainRequest(preset="demo"))  # fmt: skip
+                                            body=gen.models.TrainRequestPreset(preset="demo"))  # fmt: skip
     assert answer.status_code == 401, answer.content
     assert isinstance(answer.parsed, gen.models.HTTPError), answer.parsed
 
 
 def test_generated_client__a_bad_override_is_a_422_naming_the_field(gen):
-    overrides = gen.models.TrainRequestOverrides.from_dict({"env.grid_size": 1000})
+    overrides = gen.models.TrainRequestPresetOverrides.from_dict({"env.grid_size": 1000})
     answer = gen.submit_train.sync_detailed(
-        client=gen.client, body=gen.models.TrainRequest(preset="demo", overrides=overrides)
+        client=gen.client, body=gen.models.TrainRequestPreset(preset="demo", overrides=overrides)
     )
     assert answer.status_code == 422, answer.content
     body = answer.parsed
@@ -130,7 +130,7 @@ def test_generated_client__a_bad_override_is_a_422_naming_the_field(gen):
 
 def test_generated_client__eval_of_the_train_job_by_job_id_is_accepted(gen, server):
     train = _submit_demo(gen).parsed
-    body = gen.models.EvalJobCreate(job_id=train.id)
+    body = gen.models.EvalJobCreateJobId(job_id=train.id)
     # a queued train job has nothing to evaluate yet: a typed 409 that says so
     early = gen.submit_eval.sync_detailed(client=gen.client, body=body)
     assert early.status_code == 409, early.content

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import json
 from pathlib import PurePosixPath
+from typing import Annotated
 
-from fastapi import APIRouter, Depends, HTTPException
+from fastapi import APIRouter, Depends, HTTPException, Path
 from fastapi.responses import FileResponse, Response, StreamingResponse
 
 from quicknav_core.layout import RUN
@@ -46,9 +47,18 @@ def list_artifacts(job_id: JobId, jobs: JobsDep) -> ArtifactsPublic:
         ArtifactPublic(name=a.name, bytes=a.bytes) for a in jobs.artifacts.list(job.id)])  # fmt: skip
 
 
+# what the artifacts are called: file paths inside the job's folder, each part starting with a
+# letter, digit or underscore (the document's pattern; the route refuses, with 400, only names
+# that leave the folder, so a name outside the pattern is answered 404 or 400, never served)
+ARTIFACT_NAME = r"^[A-Za-z0-9_][A-Za-z0-9_.-]*(/[A-Za-z0-9_][A-Za-z0-9_.-]*)*$"
+ArtifactName = Annotated[str, Path(description="a file path inside the job's folder, as GET"
+                                               " /jobs/{job_id}/artifacts lists it",
+                                   json_schema_extra={"pattern": ARTIFACT_NAME})]  # fmt: skip
+
+
 @router.get("/{job_id}/artifacts/{name:path}", response_class=FileResponse,
             responses={200: DOWNLOAD_DOC, **responses(400)})  # fmt: skip
-def get_artifact(job_id: JobId, name: str, jobs: JobsDep) -> Response:
+def get_artifact(job_id: JobId, name: ArtifactName, jobs: JobsDep) -> Response:
     """One file of the job (names never leave the job's folder); streamed from an object store."""
     if why := bad_name(name):
         raise HTTPException(400, why)
