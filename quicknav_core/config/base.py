@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-import functools
 import math
 import types
-from typing import Annotated, Any, Literal, Union, get_args, get_origin
+from typing import Annotated, Any, ClassVar, Literal, Union, get_args, get_origin
 
 from pydantic import BaseModel, ConfigDict, Strict, model_validator
 
@@ -28,19 +27,26 @@ class StrictModel(BaseModel):
         extra="forbid", frozen=True, validate_default=True, allow_inf_nan=False
     )
 
+    # the fields that take a number only, found once per model class (a frozenset, never changed)
+    __numeric_fields__: ClassVar[frozenset[str]] = frozenset()
+
+    @classmethod
+    def __pydantic_init_subclass__(cls, **kwargs: Any) -> None:
+        super().__pydantic_init_subclass__(**kwargs)
+        cls.__numeric_fields__ = _numeric_fields(cls)
+
     @model_validator(mode="before")
     @classmethod
     def _no_boolean_for_a_number(cls, data: Any) -> Any:
         # pydantic reads true as 1 where a number is expected; the documents say "integer" or
         # "number", and a JSON boolean is neither
         if isinstance(data, dict):
-            for name in _numeric_fields(cls):
+            for name in cls.__numeric_fields__:
                 if isinstance(data.get(name), bool):
                     raise ValueError(f"{name}: {str(data[name]).lower()} is a boolean; a number is expected")
         return data
 
 
-@functools.cache
 def _numeric_fields(model: type[BaseModel]) -> frozenset[str]:
     """The fields of ``model`` that take a number (int or float, or either or None) only."""
 

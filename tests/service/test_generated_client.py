@@ -82,9 +82,15 @@ def gen(server, tmp_path_factory):
             del sys.modules[name]
 
 
+def _demo_request(gen, **fields):
+    """The generated model of a train request by preset (the document's variant with a preset;
+    the presets are an enum there)."""
+    return gen.models.TrainRequestPreset(preset=gen.models.TrainRequestPresetPreset.DEMO, **fields)
+
+
 def _submit_demo(gen):
     answer = gen.submit_train.sync_detailed(client=gen.client,
-                                            body=gen.models.TrainRequestPreset(preset="demo"))  # fmt: skip
+                                            body=_demo_request(gen))  # fmt: skip
     assert answer.status_code == 202, answer.content
     assert isinstance(answer.parsed, gen.models.JobPublic), answer.parsed
     return answer
@@ -109,7 +115,7 @@ def test_generated_client__submits_a_demo_train_job_and_reads_it_back(gen):
 
 def test_generated_client__without_the_token_is_a_typed_401(gen):
     answer = gen.submit_train.sync_detailed(client=gen.anonymous,
-                                            body=gen.models.TrainRequestPreset(preset="demo"))  # fmt: skip
+                                            body=_demo_request(gen))  # fmt: skip
     assert answer.status_code == 401, answer.content
     assert isinstance(answer.parsed, gen.models.HTTPError), answer.parsed
 
@@ -117,7 +123,7 @@ def test_generated_client__without_the_token_is_a_typed_401(gen):
 def test_generated_client__a_bad_override_is_a_422_naming_the_field(gen):
     overrides = gen.models.TrainRequestPresetOverrides.from_dict({"env.grid_size": 1000})
     answer = gen.submit_train.sync_detailed(
-        client=gen.client, body=gen.models.TrainRequestPreset(preset="demo", overrides=overrides)
+        client=gen.client, body=_demo_request(gen, overrides=overrides)
     )
     assert answer.status_code == 422, answer.content
     body = answer.parsed

@@ -9,6 +9,9 @@ The app has an embedded SQLite store in a tmp folder and no workers: submitted j
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 import schemathesis
@@ -130,3 +133,49 @@ def test_openapi__asks_for_the_token_only_when_the_server_has_one(tmp_path, app_
     open_doc = spec()
     assert secured(open_doc) == set() and "securitySchemes" not in open_doc["components"]
     assert secured(spec(metrics_token="m-token-0123456789")) == {"GET /metrics"}
+
+
+SCHEMATHESIS_CONFIG = Path(__file__).with_name("schemathesis.toml")
+
+
+@pytest.mark.parametrize("token", [None, TOKEN], ids=["no-token", "token"])
+def test_openapi__schemathesis_every_check_every_phase_finds_nothing(tmp_path, token):
+    """schemathesis' own command, as an outsider runs it against a live server: every check
+    (conformance, positive and negative data, methods the path does not serve, ``Allow``,
+    missing and ignored auth) in every phase (examples, coverage, fuzzing and the stateful links),
+    derandomised so CI cannot turn red on a lucky draw (docs/development.md: the longer run over
+    random seeds). The one relaxation is in ``schemathesis.toml``, with its reasons. The failed-
+    authentication limit is raised: the run sends thousands of requests without the token, and
+    the limiter has its own tests."""
+    from tests.service.conftest import LiveServer
+
+    settings = {"api_token": token, "auth_failures_max": 100_000} if token else {}
+    with LiveServer(tmp_path, **settings) as live:
+        command = [str(Path(sys.executable).with_name("st")), "--no-color", "--config-file",
+                   str(SCHEMATHESIS_CONFIG), "run", f"{live.url}/openapi.json", "--checks", "all",
+                   "--generation-deterministic", "--max-examples", "10",
+                   "--exclude-path-regex", ".*/events$"]  # fmt: skip
+        if token:
+            command += ["--header", f"Authorization: Bearer {token}"]
+        done = subprocess.run(command, capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    summary = done.stdout[done.stdout.rfind("SUMMARY"):]
+    assert done.returncode == 0, done.stdout[-6000:] + done.stderr[-2000:]
+    assert "Stateful" in summary and " passed" in summary and "failure" not in summary, summary
+
+
+def test_methods_a_path_does_not_serve__405_with_every_method_it_does(app_and_store):
+    """A POST to a GET-only path is 405 (the cross-site guard answered 415 before routing), and
+    ``Allow`` names every method the path serves (Starlette named only its first route's: GET and
+    POST /maps answered a PUT with ``Allow: POST``); a literal path is not its templated sibling
+    (``/jobs/eval`` is POST only, not ``/jobs/{job_id}``'s GET and DELETE)."""
+    from fastapi.testclient import TestClient
+
+    client = TestClient(app_and_store[0])
+    for method, path, allow in (("POST", "/healthz", "GET"), ("PUT", "/maps", "GET, POST"),
+                                ("PATCH", "/jobs/eval", "POST"), ("POST", "/jobs/abcd1234", "DELETE, GET")):  # fmt: skip
+        answer = client.request(method, path, headers=AUTH)
+        assert answer.status_code == 405 and answer.headers["allow"] == allow, (method, path, answer.headers)
+        assert allow in answer.json()["detail"]
+    # a POST to a route that takes one still needs JSON or the web header, and an unknown path is 404
+    assert client.post("/jobs/abcd1234/cancel", headers=AUTH).status_code == 415
+    assert client.post("/no/such/path", headers=AUTH).status_code == 404

@@ -118,3 +118,30 @@ def test_config__carved_target_out_of_reach_of_the_step_cap_is_refused():
     EnvConfig(**base, carve_max_steps=cap)
     EnvConfig(**base, carve_max_steps=20_000, carve_fraction=fraction)
     assert "carve_max_steps" in _error_text(**base, carve_max_steps=cap - 1000)
+
+
+def test_json_types__a_boolean_is_no_number_and_a_number_no_boolean():
+    """What the schema says a field takes is what it takes: pydantic alone reads ``true`` as 1
+    where a number is expected and ``0`` as False where a flag is (schemathesis found both in the
+    API: ``"seed": false`` and ``"stochastic": 0`` were accepted)."""
+    from quicknav_core.config import EnvConfig, TrainConfig
+    from quicknav_core.config.resolve import EvalRequest
+
+    with pytest.raises(ValidationError, match="seed: false is a boolean; a number is expected"):
+        EvalRequest.model_validate({"policy": "oracle", "seed": False})
+    with pytest.raises(ValidationError, match="grid_size: true is a boolean"):
+        EnvConfig.model_validate({"grid_size": True})
+    for flag in ({"observe_goal": 1}, {"end_on_collision": "yes"}):
+        with pytest.raises(ValidationError, match="valid boolean"):
+            EnvConfig.model_validate(flag)
+    with pytest.raises(ValidationError, match="valid boolean"):
+        EvalRequest.model_validate({"policy": "oracle", "stochastic": 0})
+    # numbers stay numbers (an int where a float is expected), flags stay flags, and None is None
+    env = EnvConfig.model_validate({"room_size": 8, "observe_goal": False, "carve_max_steps": None})
+    assert env.room_size == 8.0 and env.observe_goal is False
+    assert TrainConfig.model_validate({"algorithm": {"name": "ppo", "anneal_lr": False}}).algorithm.anneal_lr is False
+    # the tags of the algorithm and network unions are required in the schema (the API refuses
+    # a config without them), while Python keeps their defaults
+    schema = TrainConfig.model_json_schema()["$defs"]
+    assert all(schema[m]["required"][0] == "name" for m in ("PPOConfig", "SACConfig", "TD3Config"))
+    assert all(schema[m]["required"][0] == "kind" for m in ("MLPNetwork", "LSTMNetwork", "GTrXLNetwork"))
