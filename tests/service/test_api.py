@@ -212,7 +212,7 @@ def test_bad_input_is_refused_with_named_fields(live):
     assert "2147483647" in r.text
     r = httpx.post(f"{live.url}/jobs/eval", json={"policy": "random", "episodes": 4})
     job = r.json()["id"]
-    for bad in (str(2**63), "-1", "abc"):
+    for bad in (str(2**63), "-1", "abc", "+5", "", "1_000"):  # ASCII digits only (the document's pattern)
         r = httpx.get(f"{live.url}/jobs/{job}/events", headers={"Last-Event-ID": bad})
         assert r.status_code == 400 and "Last-Event-ID" in r.text, (bad, r.text)
     r = httpx.post(f"{live.url}/jobs/eval", json={"job_id": "nope"})

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import re
 import time
 from typing import Annotated
 
@@ -73,6 +74,9 @@ class StreamSlots:
 
 
 MAX_EVENT_ID = 2**63 - 1  # event ids are SQLite/Redis 64-bit integers
+# what Last-Event-ID takes (the document's pattern and the route's check): up to 18 ASCII digits,
+# below MAX_EVENT_ID; a sign, spaces or other digits are refused
+EVENT_ID = r"^[0-9]{1,18}$"
 KEEPALIVE_S = 15.0
 OUTAGE_POLL_S = 1.0
 FINISHED_GRACE_S = 1.0  # a finished job's terminal event may be a moment behind its record
@@ -88,17 +92,18 @@ def deleted(job_id: str) -> str:
 # (503 with Retry-After also when this client or the server has too many streams open)
 async def job_events(job_id: JobId, request: Request, store: StoreDep, jobs: JobsDep,
                      last_event_id: Annotated[str | None, Header(
-                         alias="Last-Event-ID", description="resume after this event id")] = None,
+                         alias="Last-Event-ID", description="resume after this event id",
+                         json_schema_extra={"pattern": EVENT_ID})] = None,
                      ) -> EventStreamResponse:  # fmt: skip
     """Server-Sent Events of the job's progress; resumable with Last-Event-ID; ends with the terminal event."""
     job_id = (await anyio.to_thread.run_sync(jobs.get, job_id)).id
     try:
-        after = int(last_event_id) if last_event_id else 0
-        if not 0 <= after <= MAX_EVENT_ID:
+        if last_event_id is not None and not re.fullmatch(EVENT_ID, last_event_id):
             raise ValueError
+        after = int(last_event_id) if last_event_id is not None else 0
     except ValueError:
         raise HTTPException(
-            400, f"Last-Event-ID must be an event id (an integer from 0 to {MAX_EVENT_ID})"
+            400, "Last-Event-ID must be an event id: 1 to 18 ASCII digits"
         ) from None
 
     slots: StreamSlots = request.app.state.streams
