@@ -71,18 +71,28 @@ def _exactly_one_as_variants(spec: dict[str, Any]) -> dict[str, Any]:
 
 def _form_fields_without_null(spec: dict[str, Any]) -> dict[str, Any]:
     # a multipart form has no null: an optional field is one left out. FastAPI documents an
-    # optional form field as "X or null", and a client that sends the text "null" gets a 422
+    # optional form field (and header) as "X or null", and a client that sends the text "null"
+    # gets a 422
     schemas = spec.get("components", {}).get("schemas", {})
     for operation in (op for path in spec.get("paths", {}).values() for op in path.values()):
         form = operation.get("requestBody", {}).get("content", {}).get("multipart/form-data", {})
         ref = form.get("schema", {}).get("$ref", "")
         body = schemas.get(ref.rsplit("/", 1)[-1], {}) if ref else form.get("schema", {})
         for name, prop in body.get("properties", {}).items():
-            kinds = [k for k in prop.get("anyOf", ()) if k.get("type") != "null"]
-            if "anyOf" in prop and len(kinds) == 1:
-                body["properties"][name] = {**{k: v for k, v in prop.items() if k != "anyOf"}, **kinds[0]}
-                body["properties"][name].pop("default", None)
+            body["properties"][name] = _not_null(prop)
+        # a header has no null either (a client that sends "null" sends text)
+        for param in operation.get("parameters", ()):
+            if param.get("in") == "header":
+                param["schema"] = _not_null(param["schema"])
     return spec
+
+
+def _not_null(prop: dict[str, Any]) -> dict[str, Any]:
+    kinds = [k for k in prop.get("anyOf", ()) if k.get("type") != "null"]
+    if "anyOf" not in prop or len(kinds) != 1:
+        return prop
+    out = {**{k: v for k, v in prop.items() if k not in ("anyOf", "default")}, **kinds[0]}
+    return out
 
 
 def _server_limits(spec: dict[str, Any], max_eval_episodes: int | None) -> dict[str, Any]:

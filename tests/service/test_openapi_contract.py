@@ -9,9 +9,6 @@ The app has an embedded SQLite store in a tmp folder and no workers: submitted j
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
-from pathlib import Path
 
 import pytest
 import schemathesis
@@ -133,34 +130,6 @@ def test_openapi__asks_for_the_token_only_when_the_server_has_one(tmp_path, app_
     open_doc = spec()
     assert secured(open_doc) == set() and "securitySchemes" not in open_doc["components"]
     assert secured(spec(metrics_token="m-token-0123456789")) == {"GET /metrics"}
-
-
-SCHEMATHESIS_CONFIG = Path(__file__).with_name("schemathesis.toml")
-
-
-@pytest.mark.parametrize("token", [None, TOKEN], ids=["no-token", "token"])
-def test_openapi__schemathesis_every_check_every_phase_finds_nothing(tmp_path, token):
-    """schemathesis' own command, as an outsider runs it against a live server: every check
-    (conformance, positive and negative data, methods the path does not serve, ``Allow``,
-    missing and ignored auth) in every phase (examples, coverage, fuzzing and the stateful links),
-    derandomised so CI cannot turn red on a lucky draw (docs/development.md: the longer run over
-    random seeds). The one relaxation is in ``schemathesis.toml``, with its reasons. The failed-
-    authentication limit is raised: the run sends thousands of requests without the token, and
-    the limiter has its own tests."""
-    from tests.service.conftest import LiveServer
-
-    settings = {"api_token": token, "auth_failures_max": 100_000} if token else {}
-    with LiveServer(tmp_path, **settings) as live:
-        command = [str(Path(sys.executable).with_name("st")), "--no-color", "--config-file",
-                   str(SCHEMATHESIS_CONFIG), "run", f"{live.url}/openapi.json", "--checks", "all",
-                   "--generation-deterministic", "--max-examples", "10",
-                   "--exclude-path-regex", ".*/events$"]  # fmt: skip
-        if token:
-            command += ["--header", f"Authorization: Bearer {token}"]
-        done = subprocess.run(command, capture_output=True, text=True, timeout=300, cwd=tmp_path)
-    summary = done.stdout[done.stdout.rfind("SUMMARY"):]
-    assert done.returncode == 0, done.stdout[-6000:] + done.stderr[-2000:]
-    assert "Stateful" in summary and " passed" in summary and "failure" not in summary, summary
 
 
 def test_methods_a_path_does_not_serve__405_with_every_method_it_does(app_and_store):

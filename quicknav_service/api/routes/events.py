@@ -40,7 +40,18 @@ class EventStreamResponse(StreamingResponse):
 EVENTS_DOC = {
     "description": "Server-Sent Events: `id: <n>`, `event: <type>` (started, progress, ...; the"
     " last is succeeded, failed or cancelled, or deleted), `data: <JSON>`; keep-alive comments",
-    "content": {"text/event-stream": {"schema": {"type": "string"}}},
+    # each event, as an SSE client parses it (the stream's items; keep-alive comments are none)
+    "content": {"text/event-stream": {"schema": {
+        "type": "object", "required": ["event", "data"],
+        "properties": {
+            "id": {"type": "string", "pattern": "^[0-9]+$",
+                   "description": "the event's id, for Last-Event-ID (the deleted event has none)"},
+            "event": {"type": "string", "description": "started, progress, ...; the last is"
+                      " succeeded, failed, cancelled or deleted"},
+            "data": {"type": "string", "contentMediaType": "application/json",
+                     "description": "the event as a JSON object: its type and the job's fields"},
+        },
+    }}},
 }
 
 class StreamSlots:
