@@ -101,17 +101,19 @@ class RouteTable:
         self.app = app
         self._table: list[tuple[Any, int, frozenset[str]]] | None = None
 
-    def methods_at(self, path: str) -> list[str]:
-        """The methods of the routes whose path matches, the most literal ones only: where
-        ``/jobs/eval`` (POST) and ``/jobs/{job_id}`` (GET, DELETE) both match, the document (as
-        OpenAPI reads paths: a literal one before a templated one) says POST."""
+    def methods_at(self, path: str, most_literal: bool = True) -> list[str]:
+        """The methods of the routes whose path matches, by default the most literal ones only:
+        where ``/jobs/eval`` (POST) and ``/jobs/{job_id}`` (GET, DELETE) both match, the document
+        (as OpenAPI reads paths: a literal one before a templated one) says POST. With
+        ``most_literal=False`` every matching route's (what the router may dispatch to)."""
         if self._table is None:
             self._table = [(compile_path(r.path_format or r.path)[0], (r.path_format or r.path).count("{"),
                             frozenset(r.methods)) for r in iter_route_contexts(self.app.routes)
                            if r.methods and r.path]  # fmt: skip
         matched = [(params, methods) for regex, params, methods in self._table if regex.match(path)]
         fewest = min((params for params, _ in matched), default=0)
-        return sorted({m for params, methods in matched if params == fewest for m in methods})
+        return sorted({m for params, methods in matched if params == fewest or not most_literal
+                       for m in methods})  # fmt: skip
 
 
 def install(app: FastAPI) -> None:

@@ -103,7 +103,8 @@ class CrossSiteGuard:
         self.routes = routes  # the app's RouteTable (api.errors)
 
     def _posted_to_a_route(self, scope) -> bool:
-        return self.routes is None or "POST" in self.routes.methods_at(scope["path"])
+        # any route the router could dispatch this POST to, templated ones included
+        return self.routes is None or "POST" in self.routes.methods_at(scope["path"], most_literal=False)
 
     async def __call__(self, scope, receive, send):
         if scope["type"] != "http" or scope["method"] in SAFE_METHODS:
