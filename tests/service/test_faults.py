@@ -249,6 +249,11 @@ def test_disk_full__queued_jobs_say_why_they_wait_and_start_when_space_is_freed(
     with disk, LiveServer(tmp_path, data_dir=disk.path / "data") as live:
         worker, _ = live.run_worker_in_background()
         disk.fill(leave_bytes=40_000)  # less than the 64 KB the disk probe writes
+        # the worker has seen it (its announcement says so) before a job is submitted: a worker
+        # that checked the disk just before the fill could otherwise claim the job (under load,
+        # CI saw it run)
+        wait_for(lambda: any(w.get("disk_full") for w in live.store.live_workers()), 20,
+                 "the worker to announce its full disk")  # fmt: skip
         r = httpx.post(f"{live.url}/jobs/eval", json={"policy": "random", "episodes": 3,
                                                       "env": {"grid_size": 8, "max_steps": 20}})  # fmt: skip
         assert r.status_code == 202, r.text
