@@ -69,7 +69,7 @@ def _exactly_one_as_variants(spec: dict[str, Any]) -> dict[str, Any]:
     return spec
 
 
-def _form_fields_without_null(spec: dict[str, Any]) -> dict[str, Any]:
+def _no_null_where_text_is_sent(spec: dict[str, Any]) -> dict[str, Any]:
     # a multipart form has no null: an optional field is one left out. FastAPI documents an
     # optional form field (and header) as "X or null", and a client that sends the text "null"
     # gets a 422
@@ -91,8 +91,7 @@ def _not_null(prop: dict[str, Any]) -> dict[str, Any]:
     kinds = [k for k in prop.get("anyOf", ()) if k.get("type") != "null"]
     if "anyOf" not in prop or len(kinds) != 1:
         return prop
-    out = {**{k: v for k, v in prop.items() if k not in ("anyOf", "default")}, **kinds[0]}
-    return out
+    return {**{k: v for k, v in prop.items() if k not in ("anyOf", "default")}, **kinds[0]}
 
 
 def _server_limits(spec: dict[str, Any], max_eval_episodes: int | None) -> dict[str, Any]:
@@ -118,7 +117,7 @@ def install(app: FastAPI, api_token: bool = True, metrics_token: bool = False,
             spec = get_openapi(title=app.title, version=app.version, description=app.description,
                                routes=app.routes,
                                separate_input_output_schemas=app.separate_input_output_schemas)  # fmt: skip
-            spec = _form_fields_without_null(_exactly_one_as_variants(_errors_as_json(spec)))
+            spec = _no_null_where_text_is_sent(_exactly_one_as_variants(_errors_as_json(spec)))
             spec = _security_as_configured(spec, api_token, metrics_token)
             app.openapi_schema = _server_limits(spec, max_eval_episodes)
         return app.openapi_schema
