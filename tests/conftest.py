@@ -18,6 +18,11 @@ import jax
 import pytest
 
 from quicknav_core.config import EnvConfig
+from tests import compile_settings
+
+# compile quickly (see tests/compile_settings.py): this process and every process it starts
+compile_settings.install()
+jax.config.update("jax_disable_most_optimizations", True)
 
 if "QUICKNAV_TEST_CACHE" not in os.environ:  # this process owns the run's folder: it removes it
     os.environ["QUICKNAV_TEST_CACHE"] = tempfile.mkdtemp(prefix="quicknav-tests-")
@@ -38,6 +43,16 @@ os.environ.setdefault("QUICKNAV_ALLOWED_HOSTS", "testserver,localhost,127.0.0.1,
 # a train job's policy export costs a worker process ~15 s the first time (jax2onnx); the tests of
 # the export set it back on (the journeys run `quicknav serve` as a user does: on by default)
 os.environ.setdefault("QUICKNAV_EXPORT_POLICIES", "false")
+
+
+@pytest.fixture
+def optimized():
+    """This test's programs compile with every optimisation, as a user's do: for a test that runs
+    far more than it compiles (an oracle driving a hundred episodes), or that holds two programs to
+    the same bits as users run them."""
+    jax.config.update("jax_disable_most_optimizations", False)
+    yield
+    jax.config.update("jax_disable_most_optimizations", True)
 
 
 @pytest.fixture(scope="session")

@@ -24,6 +24,7 @@ from pathlib import Path
 
 from quicknav_core.config import resolve_train
 from quicknav_core.layout import RunFolder
+from tests.compile_settings import as_a_user_runs
 
 DEMO_REQUEST = {"preset": "demo"}
 
@@ -45,7 +46,8 @@ def file_lock(path: Path):
 
 
 def _quicknav(*args: str, cwd: Path) -> None:
-    done = subprocess.run([sys.executable, "-m", "quicknav_cli", *args], cwd=cwd,
+    # trained as a user's machine trains it: every XLA optimisation on (tests/compile_settings.py)
+    done = subprocess.run([sys.executable, "-m", "quicknav_cli", *args], cwd=cwd, env=as_a_user_runs(),
                           capture_output=True, text=True, timeout=900)  # fmt: skip
     assert done.returncode == 0, f"quicknav {' '.join(args)} failed:\n{done.stdout[-2000:]}\n{done.stderr[-3000:]}"
 

@@ -39,6 +39,8 @@ import httpx
 from sybil import Document
 from sybil.parsers.markdown.lexers import FencedCodeBlockLexer
 
+from tests.compile_settings import as_a_user_runs
+
 ROOT = Path(__file__).resolve().parents[2]
 MARKER = re.compile(r"<!--\s*journey:\s*(?P<name>[\w-]+)\s*-->\s*\Z")
 JOB_ID = re.compile(r"\b[0-9a-f]{32}\b")
@@ -154,7 +156,8 @@ class Runner:
         return f"http://127.0.0.1:{self.port}"
 
     def env(self) -> dict[str, str]:
-        env = {k: v for k, v in os.environ.items() if not k.startswith("QUICKNAV_")}
+        # a user's shell: none of the test run's settings, its compile settings included
+        env = {k: v for k, v in as_a_user_runs().items() if not k.startswith("QUICKNAV_")}
         env.update(UV_NO_SYNC="1", UV_PROJECT=str(ROOT), COLUMNS="80", NO_COLOR="1",
                    QUICKNAV_URL=self.url, QUICKNAV_PORT=str(self.port),
                    QUICKNAV_GRPC_PORT=str(self.grpc_port),

@@ -18,11 +18,14 @@ from quicknav_service.api.http import uvicorn_options
 from quicknav_service.jobs.sqlite_store import SQLiteJobStore
 from quicknav_service.settings import Settings
 from quicknav_service.worker import Worker
+from tests.compile_settings import as_a_user_runs
 
 
-def quicknav_process(args: list[str], **env: str) -> subprocess.Popen:
-    """`quicknav ARGS` in a child process with QUICKNAV_* ``env`` (and no Redis from outside)."""
-    full = {**os.environ, **env}
+def quicknav_process(args: list[str], as_a_user: bool = False, **env: str) -> subprocess.Popen:
+    """`quicknav ARGS` in a child process with QUICKNAV_* ``env`` (and no Redis from outside);
+    ``as_a_user``: compiled as a user's machine compiles (``tests/compile_settings.py``), for a
+    process that trains more than it compiles."""
+    full = {**(as_a_user_runs() if as_a_user else os.environ), **env}
     full.pop("QUICKNAV_REDIS_URL", None)
     return subprocess.Popen([sys.executable, "-m", "quicknav_cli", *args], env=full,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)  # fmt: skip

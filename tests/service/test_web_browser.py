@@ -45,7 +45,9 @@ def server(data_dir):
     port = free_port()
     # the workers do not export trained policies (the test run's default, conftest.py): the job
     # page's policy download is the seeded trained demo's, exported once per test run
-    proc = quicknav_process(["serve", "--port", str(port), "--no-grpc"],
+    # its worker trains the demo preset (the live curve here, a map's training in the maps test):
+    # compiled as a user's machine compiles, every optimisation on
+    proc = quicknav_process(["serve", "--port", str(port), "--no-grpc"], as_a_user=True,
                             QUICKNAV_DATA_DIR=str(data_dir), QUICKNAV_API_TOKEN=TOKEN)  # fmt: skip
     url = f"http://127.0.0.1:{port}"
     try:

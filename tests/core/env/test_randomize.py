@@ -43,7 +43,7 @@ def _actions(steps, n, seed=3):
     return a
 
 
-def test_randomize__at_identity_is_the_plain_env_exactly():
+def test_randomize__at_identity_is_the_plain_env_exactly(optimized):
     plain_env, plain_params = EnvConfig(**BASE).build()
     env, params = EnvConfig(**BASE, randomize={}).build()
     assert env != plain_env  # its own compiled program (the state carries the draws)

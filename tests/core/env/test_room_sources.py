@@ -96,7 +96,7 @@ def test_floorplan__config_refuses_what_it_cannot_honour():
         EnvConfig(rooms="floorplan", floorplan={"min_room": 3, "max_room": 2})
 
 
-def test_floorplan__the_oracle_solves_every_plan():
+def test_floorplan__the_oracle_solves_every_plan(optimized):
     from quicknav_core.config import EvalConfig
     from quicknav_core.eval.evaluate import run_eval
 
@@ -244,7 +244,7 @@ def test_map__numpy_twin_matches_the_jax_env(tmp_path):
                                room_size=8.0, train_rooms=4, test_rooms=2))  # fmt: skip
 
 
-def test_map__the_shipped_office_map_loads_and_the_oracle_drives_it():
+def test_map__the_shipped_office_map_loads_and_the_oracle_drives_it(optimized):
     from quicknav_core.config import EvalConfig
     from quicknav_core.env.room_sources import check_rooms
     from quicknav_core.eval.evaluate import run_eval

@@ -129,7 +129,7 @@ def test_twin__steps_a_wide_robot_as_the_jax_env_does(wide):
     assert collided > 0  # the walk hit walls, with the wide disc
 
 
-def test_oracle__reaches_every_goal_with_the_wide_robot(wide):
+def test_oracle__reaches_every_goal_with_the_wide_robot(wide, optimized):
     from quicknav_core.config import EvalConfig
     from quicknav_core.eval.evaluate import run_episodes
     from quicknav_core.eval.scripted import baseline_agent

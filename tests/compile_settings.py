@@ -1,0 +1,48 @@
+"""How the test run's processes compile: quickly, since most tests compile far more than they run.
+
+A test builds a program, runs it a few steps and checks the result; on 2 CPU cores XLA's compile,
+not the run, is most of its time. So the test processes, and what they start (CLI commands, workers,
+servers), compile with XLA's CPU optimisations mostly off (``JAX_DISABLE_MOST_OPTIMIZATIONS``: LLVM
+at -O0) and without XLA's newer CPU fusion emitters: the GTrXL equality test's compile falls from
+19 to 11 s, its programs run the same numbers to float rounding. Programs compiled so run slower
+(the demo training takes 40 s instead of 28), so what mostly runs keeps a user's settings:
+
+- the trainings that reach a target (``tests/trained.py``), memory admission's measured processes
+  (a worker's peak is what it measures) and README's journeys (run as a user runs them) start
+  their processes with ``as_a_user_runs()``;
+- a test that runs much more than it compiles, in this process, takes the ``optimized`` fixture
+  (``tests/conftest.py``): its programs compile with every optimisation, as a user's would.
+
+JAX's persistent cache keys on both settings, so one cache folder holds both kinds of program.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+
+# the user's own XLA_FLAGS, kept for the processes that run as a user does
+USER_XLA_FLAGS = "QUICKNAV_TEST_USER_XLA_FLAGS"
+QUICK_XLA_FLAGS = "--xla_cpu_use_fusion_emitters=false"
+QUICK_JAX = "JAX_DISABLE_MOST_OPTIMIZATIONS"
+
+
+def install() -> None:
+    """Set this process's environment (inherited by every process it starts) to compile quickly.
+    Call before JAX's CPU backend starts; the first pytest process records the user's XLA_FLAGS."""
+    user = os.environ.setdefault(USER_XLA_FLAGS, os.environ.get("XLA_FLAGS", ""))
+    os.environ["XLA_FLAGS"] = f"{user} {QUICK_XLA_FLAGS}".strip()
+    os.environ[QUICK_JAX] = "1"
+
+
+def as_a_user_runs(env: Mapping[str, str] | None = None) -> dict[str, str]:
+    """``env`` (default: this process's) with the compile settings a user has: their XLA_FLAGS,
+    every optimisation on."""
+    out = dict(os.environ if env is None else env)
+    out.pop(QUICK_JAX, None)
+    user = out.get(USER_XLA_FLAGS, os.environ.get(USER_XLA_FLAGS, ""))
+    if user:
+        out["XLA_FLAGS"] = user
+    else:
+        out.pop("XLA_FLAGS", None)
+    return out
