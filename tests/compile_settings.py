@@ -46,3 +46,11 @@ def as_a_user_runs(env: Mapping[str, str] | None = None) -> dict[str, str]:
     else:
         out.pop("XLA_FLAGS", None)
     return out
+
+
+def with_cpu_devices(count: int, env: Mapping[str, str] | None = None) -> dict[str, str]:
+    """``env`` (default: this process's) for a process whose JAX has ``count`` CPU devices, its
+    compile settings kept."""
+    out = dict(os.environ if env is None else env)
+    out["XLA_FLAGS"] = f"{out.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={count}".strip()
+    return out

@@ -5,6 +5,8 @@ cache and the demo policy trained once (``tests/trained.py``). ``.ci/run`` makes
 CI run, so both suites and every xdist worker share it; without it, the first pytest process makes
 one (its xdist workers inherit it) and removes it when it ends. A program compiled once (by a test,
 a CLI command, a worker subprocess) is loaded, not compiled again, when another test builds it.
+The test processes compile with XLA's CPU optimisations mostly off (``tests/compile_settings.py``);
+a test that runs far more than it compiles takes the ``optimized`` fixture.
 """
 
 from __future__ import annotations
@@ -43,6 +45,22 @@ os.environ.setdefault("QUICKNAV_ALLOWED_HOSTS", "testserver,localhost,127.0.0.1,
 # a train job's policy export costs a worker process ~15 s the first time (jax2onnx); the tests of
 # the export set it back on (the journeys run `quicknav serve` as a user does: on by default)
 os.environ.setdefault("QUICKNAV_EXPORT_POLICIES", "false")
+
+
+def pytest_collection_modifyitems(items):
+    """The order xdist hands out modules (``--dist loadfile``, whole modules to a worker): modules
+    marked ``long_module`` first, the longest that way round, then the rest by their number of tests
+    (xdist's own order, which alone would start a one-test module of three minutes last and leave
+    the other worker idle while it runs)."""
+    modules: dict[str, list] = {}
+    for item in items:
+        modules.setdefault(item.nodeid.split("::", 1)[0], []).append(item)
+
+    def order(unit: list) -> tuple[int, int]:
+        marker = unit[0].get_closest_marker("long_module")
+        return (0, -marker.args[0]) if marker else (1, -len(unit))
+
+    items[:] = [item for unit in sorted(modules.values(), key=order) for item in unit]
 
 
 @pytest.fixture

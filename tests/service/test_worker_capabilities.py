@@ -4,7 +4,6 @@ goes to the second every time; the first keeps running one-device jobs."""
 
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 import time
@@ -18,6 +17,7 @@ from quicknav_core.config import apply_overrides, get_preset
 from quicknav_service.jobs.models import JobStatus
 from quicknav_service.jobs.redis_store import RedisJobStore
 from quicknav_service.jobs.sqlite_store import SQLiteJobStore
+from tests.compile_settings import with_cpu_devices
 from tests.service.conftest import LiveServer
 
 REDIS_URL = "redis://127.0.0.1:6379/9"  # this test's own DB index
@@ -33,8 +33,8 @@ def _config(devices: int) -> dict:
 
 
 def _worker(data: Path, devices: int, redis_url: str | None) -> subprocess.Popen:
-    env = {**os.environ, "QUICKNAV_DATA_DIR": str(data), "QUICKNAV_LEASE_S": "10",
-           "QUICKNAV_HEARTBEAT_S": "1", "XLA_FLAGS": f"--xla_force_host_platform_device_count={devices}"}  # fmt: skip
+    env = {**with_cpu_devices(devices), "QUICKNAV_DATA_DIR": str(data), "QUICKNAV_LEASE_S": "10",
+           "QUICKNAV_HEARTBEAT_S": "1"}  # fmt: skip
     env.pop("QUICKNAV_REDIS_URL", None)
     if redis_url:
         env["QUICKNAV_REDIS_URL"] = redis_url

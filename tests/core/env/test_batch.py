@@ -9,6 +9,7 @@ import pytest
 
 from quicknav_core.config import EnvConfig
 from quicknav_core.env.batch import BatchedEnv, batched_step
+from tests.compile_settings import with_cpu_devices
 
 N = 16
 
@@ -91,11 +92,10 @@ print("ok")
 
 @pytest.mark.slow  # a subprocess with two XLA CPU devices: ~27 s on 2 cores
 def test_batched_env__sharded_over_two_cpu_devices_equals_one_device():
-    import os
     import subprocess
     import sys
 
-    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    env = with_cpu_devices(2)
     out = subprocess.run([sys.executable, "-c", _SHARDED], env=env, capture_output=True, text=True,
                          timeout=300)  # fmt: skip
     assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr[-3000:]

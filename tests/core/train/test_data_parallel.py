@@ -6,7 +6,6 @@ is fixed when JAX starts)."""
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 
@@ -16,6 +15,7 @@ from fastapi.testclient import TestClient
 
 from quicknav_core.config import TrainConfig
 from quicknav_core.train.trainers import make_trainer
+from tests.compile_settings import with_cpu_devices
 
 _TWO_DEVICES = """
 import json, sys
@@ -57,7 +57,7 @@ json.dump(report, sys.stdout)
 
 @pytest.fixture(scope="module")
 def two_device_runs():
-    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    env = with_cpu_devices(2)
     out = subprocess.run([sys.executable, "-c", _TWO_DEVICES], env=env, capture_output=True,
                          text=True, timeout=600)  # fmt: skip
     assert out.returncode == 0, out.stderr[-4000:]

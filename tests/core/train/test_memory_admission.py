@@ -9,6 +9,8 @@ import pytest
 from quicknav_core.bench.memory import CASES, MB, case_request, estimate, peak_rss
 from tests.compile_settings import as_a_user_runs
 
+pytestmark = pytest.mark.long_module(230)  # twelve measured processes, ~230 s
+
 
 @pytest.mark.slow  # a fresh process per case, compile included: 20-60 s each on 2 cores
 @pytest.mark.parametrize("name,preset,overrides", CASES, ids=[c[0] for c in CASES])
