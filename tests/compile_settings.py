@@ -5,7 +5,7 @@ not the run, is most of its time. So the test processes, and what they start (CL
 servers), compile with XLA's CPU optimisations mostly off (``JAX_DISABLE_MOST_OPTIMIZATIONS``: LLVM
 at -O0) and without XLA's newer CPU fusion emitters: the GTrXL equality test's compile falls from
 19 to 11 s, its programs run the same numbers to float rounding. Programs compiled so run slower
-(the demo training takes 40 s instead of 28), so what mostly runs keeps a user's settings:
+(the demo training takes 42 s instead of 28), so what mostly runs keeps a user's settings:
 
 - the trainings that reach a target (``tests/trained.py``), memory admission's measured processes
   (a worker's peak is what it measures) and README's journeys (run as a user runs them) start
