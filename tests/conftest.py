@@ -49,7 +49,7 @@ os.environ.setdefault("QUICKNAV_EXPORT_POLICIES", "false")
 
 def pytest_collection_modifyitems(items):
     """The order xdist hands out modules (``--dist loadfile``, whole modules to a worker): modules
-    marked ``long_module`` first, the longest that way round, then the rest by their number of tests
+    marked ``long_module`` first, longest first, then the rest by their number of tests
     (xdist's own order, which alone would start a one-test module of three minutes last and leave
     the other worker idle while it runs)."""
     modules: dict[str, list] = {}
@@ -67,7 +67,10 @@ def pytest_collection_modifyitems(items):
 def optimized():
     """This test's programs compile with every optimisation, as a user's do: for a test that runs
     far more than it compiles (an oracle driving a hundred episodes), or that holds two programs to
-    the same bits as users run them."""
+    the same bits as users run them. The in-memory caches of compiled programs are emptied first:
+    a program this worker compiled at -O0 for an earlier test is compiled again (or loaded from the
+    persistent cache, keyed by its settings), not reused."""
+    jax.clear_caches()
     jax.config.update("jax_disable_most_optimizations", False)
     yield
     jax.config.update("jax_disable_most_optimizations", True)
