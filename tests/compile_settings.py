@@ -19,7 +19,6 @@ JAX's persistent cache keys on both settings, so one cache folder holds both kin
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
 
 # the user's own XLA_FLAGS, kept for the processes that run as a user does
 USER_XLA_FLAGS = "QUICKNAV_TEST_USER_XLA_FLAGS"
@@ -28,29 +27,28 @@ QUICK_JAX = "JAX_DISABLE_MOST_OPTIMIZATIONS"
 
 
 def install() -> None:
-    """Set this process's environment (inherited by every process it starts) to compile quickly.
-    Call before JAX's CPU backend starts; the first pytest process records the user's XLA_FLAGS."""
+    """Compile quickly in this process and every process it starts (their environment inherits
+    it); the first pytest process records the user's XLA_FLAGS. Call before JAX's CPU backend
+    starts."""
+    import jax
+
     user = os.environ.setdefault(USER_XLA_FLAGS, os.environ.get("XLA_FLAGS", ""))
     os.environ["XLA_FLAGS"] = f"{user} {QUICK_XLA_FLAGS}".strip()
     os.environ[QUICK_JAX] = "1"
+    jax.config.update("jax_disable_most_optimizations", True)  # read when jax was imported
 
 
-def as_a_user_runs(env: Mapping[str, str] | None = None) -> dict[str, str]:
-    """``env`` (default: this process's) with the compile settings a user has: their XLA_FLAGS,
+def as_a_user_runs() -> dict[str, str]:
+    """This process's environment with the compile settings a user has: their own XLA_FLAGS,
     every optimisation on."""
-    out = dict(os.environ if env is None else env)
-    out.pop(QUICK_JAX, None)
-    user = out.get(USER_XLA_FLAGS, os.environ.get(USER_XLA_FLAGS, ""))
-    if user:
-        out["XLA_FLAGS"] = user
-    else:
-        out.pop("XLA_FLAGS", None)
+    out = {k: v for k, v in os.environ.items() if k not in (QUICK_JAX, "XLA_FLAGS")}
+    if os.environ.get(USER_XLA_FLAGS):
+        out["XLA_FLAGS"] = os.environ[USER_XLA_FLAGS]
     return out
 
 
-def with_cpu_devices(count: int, env: Mapping[str, str] | None = None) -> dict[str, str]:
-    """``env`` (default: this process's) for a process whose JAX has ``count`` CPU devices, its
+def with_cpu_devices(count: int) -> dict[str, str]:
+    """This process's environment for a process whose JAX has ``count`` CPU devices, the quick
     compile settings kept."""
-    out = dict(os.environ if env is None else env)
-    out["XLA_FLAGS"] = f"{out.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={count}".strip()
-    return out
+    flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={count}"
+    return {**os.environ, "XLA_FLAGS": flags.strip()}

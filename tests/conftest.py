@@ -24,7 +24,6 @@ from tests import compile_settings
 
 # compile quickly (see tests/compile_settings.py): this process and every process it starts
 compile_settings.install()
-jax.config.update("jax_disable_most_optimizations", True)
 
 if "QUICKNAV_TEST_CACHE" not in os.environ:  # this process owns the run's folder: it removes it
     os.environ["QUICKNAV_TEST_CACHE"] = tempfile.mkdtemp(prefix="quicknav-tests-")
