@@ -4,24 +4,29 @@ Rows: the `building` preset's learned local planner, `paper-ppo` (the paper's ag
 would pick it), the oracle's plan followed by pure pursuit (`--policy oracle`: blind to what the
 map does not show) and the same plan followed by a dynamic window approach on the lidar
 (`--policy dwa`, as ROS 2 Navigation's DWB controller). Columns: held-out generated floor plans
-(the building preset's test bank), and the shipped maps the policy never trained on
-(`examples/maps`: the office, the warehouse), each with no unmapped obstacles, with static ones
-and with moving ones; a collision ends an episode, a failure, for every row (the rule the
+(the building preset's test bank), the maps drawn for QuickNav that the policy never trained on
+(`examples/maps`: the office, the warehouse) and real SLAM maps that robots built with their lidar
+(`examples/maps/slam`: Nav2's depot and warehouse, AWS RoboMaker's small warehouse; their
+licences in that folder's README), each with no unmapped obstacles, with static ones and with
+moving ones; a collision ends an episode, a failure, for every row (the rule the
 building preset trains under; the paper's env lets the robot slide on). Every figure is a `quicknav eval` of the same episodes (seed 0) in a fresh
 process, as a user runs it: success, SPL, collisions per episode, time to goal (successes).
 Trainings are reused when their run folder already holds the whole budget (`--retrain` trains
 again), and evaluations when their folder holds one of the same command (`--fresh` runs them
-again).
+again). `--where` evaluates only the columns it names and keeps the other cells of the results
+file (a column added later needs no rerun of the rest).
 
-    uv run python benchmarks/buildings.py [--episodes 100] [--runs runs/buildings]
+    uv run python benchmarks/buildings.py [--episodes 100] [--runs runs/buildings] [--where "depot (SLAM)"]
 
-Prints a Markdown table and writes benchmarks/results/buildings.json.
+Prints a Markdown table (a row per map and obstacles, a column per policy) and writes
+benchmarks/results/buildings.json.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 from pathlib import Path
 
@@ -39,6 +44,9 @@ WHERE = {
     "floor plans": [],
     "office map": ["--map", "examples/maps/office.yaml"],
     "warehouse map": ["--map", "examples/maps/warehouse.yaml"],
+    "depot (SLAM)": ["--map", "examples/maps/slam/depot.yaml"],
+    "small warehouse (SLAM)": ["--map", "examples/maps/slam/small_warehouse.yaml"],
+    "warehouse 30 x 50 m (SLAM)": ["--map", "examples/maps/slam/warehouse.yaml"],
 }
 # the building preset's test bank, for the agents that did not train on it
 FLOORPLANS = ["--set", "rooms=floorplan", "--set", "grid_size=24", "--set", "room_size=12",
@@ -83,7 +91,10 @@ def main() -> None:
     ap.add_argument("--retrain", action="store_true")
     ap.add_argument("--fresh", action="store_true", help="evaluate again cells already evaluated")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "buildings.json")
+    ap.add_argument("--where", action="append", choices=list(WHERE),
+                    help="evaluate only these columns (repeat it); the results file keeps the rest")
     args = ap.parse_args()
+    wheres = args.where or list(WHERE)
     env_file = args.runs / "building-env.json"
     rows: dict[str, dict] = {}
     for preset in PRESETS:
@@ -99,21 +110,29 @@ def main() -> None:
     for baseline in BASELINES:  # in the building preset's env: its lidar, robot and obstacles
         rows[baseline] = {"train_s": None, "who": ["--policy", baseline, "--config", str(env_file)],
                           "floor plans": []}  # fmt: skip
+    kept = json.loads(args.out.read_text())["results"] if args.where and args.out.exists() else {}
     results: dict[str, dict] = {}
     for name, row in rows.items():
-        results[name] = {"train_s": row["train_s"], "cells": {}}
-        for where, flags in WHERE.items():
+        before = kept.get(name, {})
+        results[name] = {"train_s": row["train_s"] or before.get("train_s"),
+                         "cells": dict(before.get("cells", {}))}  # fmt: skip
+        for where in wheres:
+            flags = WHERE[where]
             base = row["floor plans"] if where == "floor plans" else flags
             for obstacles, sets in OBSTACLES.items():
                 key = f"{where}, {obstacles}"
-                out = args.runs / "eval" / name / key.replace(", ", "-").replace(" ", "-")
+                out = args.runs / "eval" / name / re.sub(r"[^a-z0-9]+", "-", key.lower()).strip("-")
                 r = evaluate(row["who"], [*base, *sets, *RULES], out, args.episodes, args.fresh)
                 results[name]["cells"][key] = r
                 print(f"{name} on {key}: {cell(r)} ({r['seconds']} s)", flush=True)
-    keys = [f"{w}, {o}" for w in WHERE for o in OBSTACLES]
-    lines = ["| policy | " + " | ".join(keys) + " |", "|---" * (len(keys) + 1) + "|"]
-    for name, r in results.items():
-        lines.append(f"| {name} | " + " | ".join(cell(r["cells"][k]) for k in keys) + " |")
+    names = list(results)
+    lines = ["| map | obstacles | " + " | ".join(names) + " |", "|---" * (len(names) + 2) + "|"]
+    for w in WHERE:
+        for o in OBSTACLES:
+            k = f"{w}, {o}"
+            if any(k in results[n]["cells"] for n in names):
+                shown = [cell(results[n]["cells"][k]) if k in results[n]["cells"] else "-" for n in names]
+                lines.append(f"| {w} | {o} | " + " | ".join(shown) + " |")
     lines += ["", f"{args.episodes} episodes per cell (seed 0); cells: success, SPL, collisions per"
               f" episode, time to goal of the successes. Machine: {machine_line()}."]  # fmt: skip
     text = "\n".join(lines)
