@@ -13,8 +13,8 @@ building preset trains under; the paper's env lets the robot slide on). Every fi
 process, as a user runs it: success, SPL, collisions per episode, time to goal (successes).
 Trainings are reused when their run folder already holds the whole budget (`--retrain` trains
 again), and evaluations when their folder holds one of the same command (`--fresh` runs them
-again). `--where` evaluates only the columns it names and keeps the other cells of the results
-file (a column added later needs no rerun of the rest).
+again). `--where` and `--rows` evaluate only the maps and policies they name and keep the other
+cells of the results file (a map added later needs no rerun of the rest).
 
     uv run python benchmarks/buildings.py [--episodes 100] [--runs runs/buildings] [--where "depot (SLAM)"]
 
@@ -93,25 +93,31 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "buildings.json")
     ap.add_argument("--where", action="append", choices=list(WHERE),
                     help="evaluate only these columns (repeat it); the results file keeps the rest")
+    ap.add_argument("--rows", action="append", choices=[*PRESETS, *BASELINES],
+                    help="evaluate only these rows (repeat it); the results file keeps the rest")
     args = ap.parse_args()
-    wheres = args.where or list(WHERE)
+    wheres, wanted = args.where or list(WHERE), args.rows or [*PRESETS, *BASELINES]
     env_file = args.runs / "building-env.json"
     rows: dict[str, dict] = {}
     for preset in PRESETS:
         run_dir = args.runs / preset
         train_s = None
-        if args.retrain or not trained(run_dir, preset):
+        if preset in wanted and (args.retrain or not trained(run_dir, preset)):
             train_s = run(["uv", "run", "quicknav", "train", "--preset", preset, "--out", str(run_dir)])
-        if preset == "building":
+        if preset == "building":  # the baselines drive in its env (a training writes it first)
+            if not (run_dir / "config.json").exists():
+                sys.exit(f"{run_dir} holds no building training: run with --rows building first")
             env = json.loads((run_dir / "config.json").read_text())["env"]
             env_file.write_text(json.dumps(env))
-        rows[preset] = {"train_s": train_s and round(train_s), "who": [str(run_dir)],
-                        "floor plans": [] if preset == "building" else FLOORPLANS}  # fmt: skip
-    for baseline in BASELINES:  # in the building preset's env: its lidar, robot and obstacles
+        if preset in wanted:
+            rows[preset] = {"train_s": train_s and round(train_s), "who": [str(run_dir)],
+                            "floor plans": [] if preset == "building" else FLOORPLANS}  # fmt: skip
+    for baseline in (b for b in BASELINES if b in wanted):  # in the building preset's env
         rows[baseline] = {"train_s": None, "who": ["--policy", baseline, "--config", str(env_file)],
                           "floor plans": []}  # fmt: skip
-    kept = json.loads(args.out.read_text())["results"] if args.where and args.out.exists() else {}
-    results: dict[str, dict] = {}
+    partial = args.where or args.rows
+    kept = json.loads(args.out.read_text())["results"] if partial and args.out.exists() else {}
+    results: dict[str, dict] = {name: kept[name] for name in kept if name not in rows}
     for name, row in rows.items():
         before = kept.get(name, {})
         results[name] = {"train_s": row["train_s"] or before.get("train_s"),
@@ -125,7 +131,7 @@ def main() -> None:
                 r = evaluate(row["who"], [*base, *sets, *RULES], out, args.episodes, args.fresh)
                 results[name]["cells"][key] = r
                 print(f"{name} on {key}: {cell(r)} ({r['seconds']} s)", flush=True)
-    names = list(results)
+    names = [n for n in (*PRESETS, *BASELINES) if n in results]
     lines = ["| map | obstacles | " + " | ".join(names) + " |", "|---" * (len(names) + 2) + "|"]
     for w in WHERE:
         for o in OBSTACLES:

@@ -83,7 +83,7 @@ def evaluate(
         if cfg.pictures:
             result["warnings"] = draw_all(ep, env_config, result["by_path_length"], out_dir,
                                           agent.name, gif=bool(cfg.gif_episodes),
-                                          robustness=result.get("robustness"))  # fmt: skip
+                                          robustness=result.get("robustness"), split=cfg.split)  # fmt: skip
             if result["warnings"]:
                 write_json(out_dir / EVAL.result, result)
     return result, ep

@@ -20,7 +20,7 @@ from quicknav_core.eval.episodes import Episodes
 from quicknav_core.layout import EVAL
 
 __all__ = ["draw_all", "draw_difficulty", "draw_gif", "draw_profiles", "draw_robustness", "draw_trajectories",
-           "picture_warning"]  # fmt: skip
+           "picture_warning", "rooms_in_words"]  # fmt: skip
 
 
 def picture_warning(name: str, error: BaseException) -> str:
@@ -29,14 +29,27 @@ def picture_warning(name: str, error: BaseException) -> str:
     return f"{name} was not drawn: {type(error).__name__}{': ' + why if why else ''}"
 
 
+def rooms_in_words(config: EnvConfig, split: str = "test") -> str:
+    """Where an evaluation's episodes were, for a picture's title: the map's file name when it
+    ran on maps, else the room bank it drew from."""
+    if config.rooms == "maps":
+        names = config.maps.test if split == "test" and config.maps.test else config.maps.train
+        shown = [n if n.startswith("map:") else Path(n).name for n in names]
+        if len(shown) == 1:
+            return f"map {shown[0]}"
+        return f"{len(shown)} maps ({', '.join(shown[:3])}{', ...' if len(shown) > 3 else ''})"
+    return "held-out test rooms" if split == "test" else "training rooms"
+
+
 def draw_all(
     ep: Episodes, config: EnvConfig, rows: list[dict[str, Any]], out_dir: Path, title: str,
-    gif: bool = True, robustness: list[dict[str, Any]] | None = None,
+    gif: bool = True, robustness: list[dict[str, Any]] | None = None, split: str = "test",
 ) -> list[str]:  # fmt: skip
     """Draw every picture of an evaluation into ``out_dir``; the warnings of those that failed."""
     import matplotlib.pyplot as plt
 
-    jobs = [(EVAL.trajectories, lambda p: draw_trajectories(ep, config, p, title=title)),
+    where = rooms_in_words(config, split)
+    jobs = [(EVAL.trajectories, lambda p: draw_trajectories(ep, config, p, title=title, where=where)),
             (EVAL.difficulty, lambda p: draw_difficulty(rows, p, title=title))]  # fmt: skip
     if robustness:
         jobs.append((EVAL.robustness, lambda p: draw_robustness(robustness, p, title=title)))
@@ -131,8 +144,10 @@ def outcome(ep: Episodes, i: int, config: EnvConfig) -> str:
     return "timed out"
 
 
-def draw_trajectories(ep: Episodes, config: EnvConfig, path: Path, title: str = "") -> Path:
-    """3x3 grid of episodes with their trajectories (the paper's trajectory figures)."""
+def draw_trajectories(ep: Episodes, config: EnvConfig, path: Path, title: str = "",
+                      where: str = "held-out test rooms") -> Path:  # fmt: skip
+    """3x3 grid of episodes with their trajectories (the paper's trajectory figures); ``where``:
+    the rooms they ran in (``rooms_in_words``)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -153,7 +168,7 @@ def draw_trajectories(ep: Episodes, config: EnvConfig, path: Path, title: str = 
         ax.add_patch(plt.Circle(ep.goals[i], config.goal_radius, color=GOAL_COLOUR, alpha=0.4))
         ax.plot(*ep.goals[i], "*", color=GOAL_COLOUR, ms=12)
         ax.set_title(f"episode {i + 1}: {outcome(ep, i, config)}, {ep.steps[i]} steps", fontsize=9)
-    fig.suptitle(f"{title}: held-out test rooms", fontsize=11)
+    fig.suptitle(f"{title}: {where}" if title else where, fontsize=11)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)

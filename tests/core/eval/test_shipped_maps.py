@@ -57,3 +57,18 @@ def test_shipped_maps__every_slam_file_names_its_source_and_licence():
     named = {m for r in rows for m in re.findall(r"`([\w.]+\.(?:yaml|pgm|png))`", r)}
     files = {p.name for p in SLAM.iterdir() if p.suffix in (".yaml", ".pgm", ".png")}
     assert files == named, files ^ named
+
+
+def test_map_eval_pictures__name_the_map_not_a_room_bank():
+    from quicknav_core.config import EnvConfig
+    from quicknav_core.eval.pictures import rooms_in_words
+
+    on_map = EnvConfig(rooms="maps", maps={"train": ["examples/maps/slam/depot.yaml"]},
+                       grid_size=63, room_size=31.5)  # fmt: skip
+    assert rooms_in_words(on_map) == "map depot.yaml"
+    held_out = EnvConfig(rooms="maps", maps={"train": ["map:4f2a"], "test": ["a.yaml", "b/b.yaml"]},
+                         grid_size=63, room_size=31.5)  # fmt: skip
+    assert rooms_in_words(held_out) == "2 maps (a.yaml, b.yaml)"
+    assert rooms_in_words(held_out, "train") == "map map:4f2a"
+    assert rooms_in_words(EnvConfig()) == "held-out test rooms"
+    assert rooms_in_words(EnvConfig(), "train") == "training rooms"
