@@ -66,13 +66,14 @@ def evaluate(who: list[str], where: list[str], out: Path, episodes: int, fresh: 
     asked = out / "command.json"  # an evaluation of this very command is reused (--fresh: not)
     done = json.loads(asked.read_text()) if asked.exists() else {}
     if fresh or done.get("command") != command:
-        done = {"command": command, "seconds": run(command)}
+        done = {"command": command, "seconds": run(command), "machine": machine_line()}
         asked.write_text(json.dumps(done))
     seconds = done["seconds"]
     doc = json.loads((out / "eval.json").read_text())
     m, env = doc["metrics"], doc["env_config"]
     steps = m["steps_to_goal_successes"]["mean"]
-    return {"seconds": seconds and round(seconds, 1), "success_rate": m["success_rate"],
+    return {"machine": done.setdefault("machine", machine_line()),
+            "seconds": seconds and round(seconds, 1), "success_rate": m["success_rate"],
             "success_ci95": m["success_ci95"], "spl": m["spl"],
             "collisions_per_episode": m["collisions_per_episode"],
             "time_to_goal_s": None if steps is None else round(steps * env["dt"], 1)}  # fmt: skip
@@ -116,7 +117,13 @@ def main() -> None:
         rows[baseline] = {"train_s": None, "who": ["--policy", baseline, "--config", str(env_file)],
                           "floor plans": []}  # fmt: skip
     partial = args.where or args.rows
-    kept = json.loads(args.out.read_text())["results"] if partial and args.out.exists() else {}
+    kept = {}
+    if partial and args.out.exists():
+        doc = json.loads(args.out.read_text())
+        kept, was = doc["results"], doc["machine"]
+        for row in kept.values():  # cells from before cells named their machine: the file's
+            for c in row["cells"].values():
+                c.setdefault("machine", f"{was['cpu']}, {was['cores']} cores, {was['device_kind']}")
     results: dict[str, dict] = {name: kept[name] for name in kept if name not in rows}
     for name, row in rows.items():
         before = kept.get(name, {})
@@ -139,8 +146,10 @@ def main() -> None:
             if any(k in results[n]["cells"] for n in names):
                 shown = [cell(results[n]["cells"][k]) if k in results[n]["cells"] else "-" for n in names]
                 lines.append(f"| {w} | {o} | " + " | ".join(shown) + " |")
+    machines = sorted({c["machine"] for r in results.values() for c in r["cells"].values()})
     lines += ["", f"{args.episodes} episodes per cell (seed 0); cells: success, SPL, collisions per"
-              f" episode, time to goal of the successes. Machine: {machine_line()}."]  # fmt: skip
+              " episode, time to goal of the successes. Machines: " + "; ".join(machines)
+              + " (each cell's in the JSON)."]  # fmt: skip
     text = "\n".join(lines)
     print(text)
     args.out.write_text(json.dumps({"machine": machine_info(), "episodes": args.episodes,
