@@ -6,8 +6,8 @@ starts from the JAX env's `reset(fold_in(PRNGKey(seed), i))`: the same room, sta
 are then driven by the SDK's `Navigator` (onnxruntime, SciPy's Dijkstra on `map.npz`; no JAX)
 in the NumPy twin: the twin moves the robot and casts a lidar that sees the walls only, as a
 real scanner does; the Navigator gets the scan, the pose in the map frame and the goal. Without
-unmapped obstacles. Prints both success rates, how many episodes end alike, and writes
-benchmarks/results/navigator_parity.json.
+unmapped obstacles. Prints both success rates, how many episodes end alike, and writes them into
+benchmarks/results/navigator_parity.json (one entry per map).
 
     uv run python benchmarks/navigator_parity.py --run runs/buildings/building \
         [--map examples/maps/office.yaml] [--episodes 100]
@@ -121,7 +121,9 @@ def main() -> None:
         "same_outcome": int((jax_ok == sdk_ok).sum()),
         "difference_points": round(100 * abs(float(jax_ok.mean()) - float(sdk_ok.mean())), 1),
     }  # fmt: skip
-    args.out.write_text(json.dumps(doc, indent=1))
+    # one entry per map: a run on another map keeps the others
+    kept = json.loads(args.out.read_text()).get("maps", {}) if args.out.exists() else {}
+    args.out.write_text(json.dumps({"maps": {**kept, args.map: doc}}, indent=1))
     print(f"{args.map}, {args.episodes} episodes (seed {args.seed}), grid {cfg.grid_size} at"
           f" {cfg.cell_size:g} m, {cfg.max_steps}-step limit; {machine_line()}")
     print(f"  JAX eval:                     {100 * jax_ok.mean():5.1f} % success")
