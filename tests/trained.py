@@ -70,7 +70,7 @@ def trained_demo() -> Path:
     return run
 
 
-# README's building journey trains `--preset building` for 33.5M steps (about 10 min on 2 cores); the
+# README's building journey trains `--preset building` for 33.5M steps (10-35 min on 2 cores); the
 # test run trains the same preset for this many (a policy that has learned to follow the plan, not
 # the finished one: the journey test asserts what this budget reaches)
 BUILDING_TEST_STEPS = 6_291_456

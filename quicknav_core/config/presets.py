@@ -103,8 +103,9 @@ PRESETS: dict[str, dict[str, Any]] = {
         "description": "Drive a building: a learned local planner (PPO, 2x128 MLP) that follows the"
         " map's global plan (waypoints in the robot's frame) and avoids, by its lidar, what the map"
         " does not show (boxes, people). Trained on generated floor plans only: its figures on"
-        " real maps are those of a building it never saw. About 10 min on 2 CPU cores; start here"
-        " for your own building (docs: Drive a building).",
+        " real maps are those of a building it never saw. 10-35 min on 2 CPU cores (measured on"
+        " an Intel Xeon and an AMD EPYC VM); start here for your own building (docs: Drive a"
+        " building).",
         "notes": "Everything is QuickNav's (not in the paper): the plan in the observation, the"
         " path-progress reward, the obstacles and the training budget.",
         "config": {
