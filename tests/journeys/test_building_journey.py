@@ -61,46 +61,34 @@ def test_journey__drive_a_building(runner, trained_building_run):
 
 def drive_with_navigator(folder, env_config: dict, episodes: int) -> dict:
     """Office episodes driven by an exported policy through the SDK's ``Navigator`` (onnxruntime,
-    SciPy's Dijkstra on ``map.npz``) in the NumPy twin, without unmapped obstacles: the twin moves
-    the robot and casts the lidar; the Navigator sees only the scan, the map-frame pose and the
-    goal. Its observation is compared with the twin's own at every step."""
+    SciPy's Dijkstra on ``map.npz``) in the NumPy twin, without unmapped obstacles, one episode at
+    a time by ``benchmarks/navigator_parity.py``'s ``drive`` (the twin moves the robot and casts a
+    walls-only lidar; the Navigator sees the scan, the map-frame pose and the goal; its observation
+    is compared with the twin's own at every step). Starts and goals: cell centres the robot fits
+    at, 3 m or more apart."""
     import math
 
     import numpy as np
     from quicknav_client.navigate import Navigator
 
+    from benchmarks.navigator_parity import drive
     from quicknav_core.config import EnvConfig
-    from quicknav_core.env.constants import HIT_NONE
-    from quicknav_core.env.numpy_env import QuickNavNumpyEnv, cast_lidar_np
+    from quicknav_core.env.numpy_env import QuickNavNumpyEnv
 
     nav = Navigator.load(folder)
-    angles = np.asarray(nav.policy.manifest["lidar"]["beam_angles_rad"], np.float32)
     cfg = EnvConfig(**{**env_config, "obstacles": None})
     twin = QuickNavNumpyEnv(cfg, split="test")
-    corner, cell = np.asarray(nav.frame["grid_corner_in_map"]), float(nav.frame["cell_m"])
+    cell = float(nav.frame["cell_m"])
     free = np.argwhere(nav.planner.usable)
     rng = np.random.default_rng(0)
-    worst, reached, steps = 0.0, 0, 0
+    rows = []
     for _ in range(episodes):
-        while True:  # a start and a goal at cell centres the robot fits at, 3 m or more apart
+        while True:
             a, b = free[rng.integers(len(free), size=2)]
             start, goal = (a[::-1] + 0.5) * cell, (b[::-1] + 0.5) * cell
             if np.linalg.norm(start - goal) >= 3.0:
                 break
-        obs = twin.load(nav.planner.walls, start, rng.uniform(-math.pi, math.pi), goal)
-        nav.set_goal(goal + corner)
-        done = False
-        while not done:
-            s = twin.snapshot()
-            # what a real lidar reports: the walls only (the goal is no object; no return: inf)
-            ranges, hits = cast_lidar_np(s["pos"], s["theta"], np.full(2, -1e4, np.float32), s["walls"],
-                                         angles, cell, cfg.lidar_max_range, cfg.goal_radius)  # fmt: skip
-            scan = np.where(hits == HIT_NONE, np.inf, ranges)
-            pose = (float(s["pos"][0] + corner[0]), float(s["pos"][1] + corner[1]), float(s["theta"]))
-            mine = nav.observation(scan, pose)
-            worst = max(worst, float(np.abs(mine - obs).max()))
-            left, right = nav.policy.act_on(mine)
-            obs, _, terminated, truncated, info = twin.step(np.array([left, right]) / cfg.max_wheel_speed)
-            done, steps = terminated or truncated, steps + 1
-        reached += bool(info["goal_reached"])
-    return {"success_rate": reached / episodes, "max_obs_error": worst, "steps": steps}
+        rows.append(drive(nav, twin, cfg, nav.planner.walls, start, rng.uniform(-math.pi, math.pi), goal))
+    return {"success_rate": sum(r["success"] for r in rows) / episodes,
+            "max_obs_error": max(r["max_obs_error"] for r in rows),
+            "steps": sum(r["steps"] for r in rows)}  # fmt: skip
