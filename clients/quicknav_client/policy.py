@@ -10,10 +10,10 @@
 ROS ``sensor_msgs/LaserScan`` (``angle_min``, ``angle_increment``, ``ranges``, ``range_min``,
 ``range_max``; angles in the robot frame, counter-clockwise, 0 straight ahead; ``inf``/``NaN`` or a
 range outside [range_min, range_max] is no return), or a plain array of ranges at the policy's own
-beam angles. It is resampled onto the policy's beams (the nearest return within each beam's
-sector) and normalised as in training. The goal is not a thing a lidar sees, but in training the
-beams that crossed the goal disc reported it; ``act`` draws the goal disc (from ``goal`` and the
-trained ``goal_radius``) into the resampled scan the same way. ``pose`` and ``goal`` are in the
+beam angles. It is resampled onto the policy's beams (the valid return closest in angle to each
+beam, within its sector) and normalised as in training. The goal is not a thing a lidar sees, but
+in training the beams that crossed the goal disc reported it; ``act`` draws the goal disc (from
+``goal`` and the trained ``goal_radius``) into the resampled scan the same way. ``pose`` and ``goal`` are in the
 room frame the policy was trained in (metres, radians).
 
 Install: ``pip install 'quicknav-client[policy]'`` (onnxruntime).
@@ -52,9 +52,10 @@ def _field(scan: Any, name: str, default: Any = None) -> Any:
 
 def resample(scan: Any, beam_angles: np.ndarray, fov_deg: float, max_range: float) -> np.ndarray:
     """Ranges (float32, metres, ``inf`` where no return) at the policy's beams: for each beam, the
-    nearest valid return whose angle falls in the beam's sector (the half-open interval halfway to
-    its neighbours; the edge beams of a partial field of view get a sector as wide as the inner
-    ones)."""
+    valid return closest in angle to the beam's direction (the ray the simulator's beam measures),
+    looked for within the beam's sector (the half-open interval halfway to its neighbours; the edge
+    beams of a partial field of view get a sector as wide as the inner ones); two returns as close
+    give the shorter range; a sector without a valid return is no return."""
     beams = beam_angles.size
     if isinstance(scan, np.ndarray | list | tuple):
         ranges = np.asarray(scan, np.float64).reshape(-1)
@@ -90,8 +91,13 @@ def resample(scan: Any, beam_angles: np.ndarray, fov_deg: float, max_range: floa
             f" was trained for a {fov_deg:g}-degree lidar: train one for this scanner (env.lidar_fov_deg"
             f" = the scanner's field of view, e.g. 270) or give a scan that covers every beam")
     inside = sector & valid[None, :]
-    nearest = np.where(inside, ranges[None, :], np.inf).min(axis=1)
-    return nearest.astype(f32)
+    # not the shortest return of the sector: that would show the policy every beam shortened
+    # towards its neighbours' walls, which it never saw in training (the demo policy driven from a
+    # 360-beam scan: 88 % held-out success with the sector's shortest return, 97 % with the closest
+    # in angle, 98 % from its own 16 beams)
+    off = np.where(inside, np.abs(rel), np.inf)
+    closest = inside & (off <= off.min(axis=1, keepdims=True) + 1e-9)
+    return np.where(closest, ranges[None, :], np.inf).min(axis=1).astype(f32)
 
 
 def _degrees(angles: np.ndarray, most: int = 6) -> str:
