@@ -1,11 +1,14 @@
 """Admission against reality: a job's estimated peak memory (``train.memory``, what the service
 admits jobs by) beside the peak RSS of a process that runs it as a worker does (build, compile,
-train a few chunks, write checkpoints), for every network kind and algorithm at two sizes.
+train a few chunks, write checkpoints), for every network kind and algorithm at two sizes; and
+evaluations on maps from 45 to 202 cells a side (``EVAL_CASES``: 100 episodes of a baseline with
+the building preset's sensors, its pictures written, as an eval job runs).
 
-    uv run python -m quicknav_core.bench.memory [--out benchmarks/results/memory.json]
+    uv run python -m quicknav_core.bench.memory [--out benchmarks/results/memory.json] [--case NAME]
 
-Each case runs in a fresh process (``peak_rss`` reads its ``ru_maxrss``); ``tests/core/
-test_memory_admission.py`` (slow) holds every case to within 10 % and README quotes the table.
+Each case runs in a fresh process (``peak_rss`` reads its ``ru_maxrss``); ``tests/core/train/
+test_memory_admission.py`` (slow) holds every training case to within 10 % and README quotes the
+tables. The large evaluations take minutes each (20 min at grid 202 on 2 cores): benchmark only.
 """
 
 from __future__ import annotations
@@ -35,6 +38,26 @@ CASES: tuple[tuple[str, str, dict[str, Any]], ...] = (
     ("gtrxl-512", "paper-gtrxl", {"num_envs": 512}),
     ("gtrxl-2048", "paper-gtrxl", {"num_envs": 2048}),
 )
+
+# (case, map, cell size in metres, baseline): 100 episodes each; the oracle and DWA keep every
+# episode's plan (two distance fields over 5 x 5 nodes per cell) for the whole episode
+EVAL_CASES: tuple[tuple[str, str, float, str], ...] = (
+    ("eval-office-oracle", "examples/maps/office.yaml", 0.5, "oracle"),
+    ("eval-warehouse-0.5m-oracle", "examples/maps/slam/warehouse.yaml", 0.5, "oracle"),
+    ("eval-warehouse-0.25m-oracle", "examples/maps/slam/warehouse.yaml", 0.25, "oracle"),
+)
+EVAL_EPISODES = 100
+
+_EVAL_CHILD = """
+import json, resource, sys, tempfile
+from pathlib import Path
+from quicknav_core.config import EvalConfig
+from quicknav_core.eval.evaluate import run_eval
+cfg = EvalConfig.model_validate_json(sys.argv[1])
+with tempfile.TemporaryDirectory() as out:
+    run_eval(cfg, Path(out))
+print(json.dumps({"peak_rss": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024}))
+"""
 
 _CHILD = """
 import json, resource, sys, tempfile
@@ -78,11 +101,56 @@ def peak_rss(request: dict[str, Any], env: dict[str, str] | None = None) -> int:
     return int(json.loads(done.stdout.strip().splitlines()[-1])["peak_rss"])
 
 
+def eval_case(map_path: str, cell_m: float, policy: str, episodes: int = EVAL_EPISODES):
+    """The EvalConfig of an evaluation case: ``policy`` on the map at ``cell_m`` cells with the
+    building preset's sensors, the grid and the step limit following the map (as ``quicknav eval
+    --map`` gives them)."""
+    from quicknav_core.config import EnvConfig, EvalConfig, resolve_train
+    from quicknav_core.eval.map_fit import fit_map
+
+    building = resolve_train({"preset": "building"}).env
+    grid = building.grid_size
+    env = EnvConfig.model_validate({**building.model_dump(), "room_size": grid * cell_m})
+    where = str(Path(map_path).resolve())
+    fit = fit_map(env, where)
+    env = EnvConfig.model_validate({**env.model_dump(), **fit.env_overrides(where), "obstacles": None})
+    return EvalConfig(policy=policy, env=env, episodes=episodes)
+
+
+def eval_peak_rss(cfg) -> int:
+    """Peak resident bytes of a fresh process that runs the evaluation ``cfg`` (pictures written),
+    compiling every program."""
+    child_env = {k: v for k, v in os.environ.items() if k not in _CACHE_VARIABLES}
+    done = subprocess.run([sys.executable, "-c", _EVAL_CHILD, cfg.model_dump_json()],
+                          capture_output=True, text=True, env=child_env, timeout=7200)  # fmt: skip
+    if done.returncode != 0:
+        raise RuntimeError(f"case failed:\n{done.stderr[-3000:]}")
+    return int(json.loads(done.stdout.strip().splitlines()[-1])["peak_rss"])
+
+
 def estimate(request: dict[str, Any]) -> int:
     from quicknav_core.config import resolve_train
     from quicknav_core.train.memory import train_memory
 
     return train_memory(resolve_train(request)).total
+
+
+def run_eval_cases(cases=EVAL_CASES) -> list[dict[str, Any]]:
+    from quicknav_core.train.memory import eval_memory
+
+    rows = []
+    for name, map_path, cell_m, policy in cases:
+        cfg = eval_case(map_path, cell_m, policy)
+        est = eval_memory(cfg)
+        measured = eval_peak_rss(cfg)
+        rows.append({"case": name, "map": map_path, "cell_m": cell_m, "policy": policy,
+                     "episodes": cfg.episodes, "grid_size": cfg.env.grid_size,
+                     "max_steps": cfg.env.max_steps, "estimate_mb": round(est.total / MB),
+                     "estimate_parts": est.describe(), "measured_mb": round(measured / MB),
+                     "ratio": round(est.total / measured, 3)})  # fmt: skip
+        print(f"{name:<28} grid {cfg.env.grid_size:>3} estimate {est.total / MB:7.0f} MB  measured"
+              f" {measured / MB:7.0f} MB  ratio {est.total / measured:.2f}", flush=True)
+    return rows
 
 
 def run(cases=CASES) -> list[dict[str, Any]]:
@@ -108,9 +176,20 @@ def main() -> None:
     ap.add_argument("--case", action="append", help="only these cases")
     args = ap.parse_args()
     chosen = [c for c in CASES if not args.case or c[0] in args.case]
-    rows = run(chosen)
+    evals = [c for c in EVAL_CASES if not args.case or c[0] in args.case]
+    rows, eval_rows = run(chosen), run_eval_cases(evals)
+    # a run of some cases keeps the others' rows (the large evaluations take long)
+    kept = json.loads(args.out.read_text()) if args.case and args.out.exists() else {}
+
+    def merged(old: list[dict[str, Any]], new: list[dict[str, Any]], order) -> list[dict[str, Any]]:
+        by_case = {r["case"]: r for r in old} | {r["case"]: r for r in new}
+        return [by_case[c[0]] for c in order if c[0] in by_case]
+
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"machine": machine_info(), "rows": rows}, indent=2))
+    args.out.write_text(json.dumps({"machine": machine_info(),
+                                    "rows": merged(kept.get("rows", []), rows, CASES),
+                                    "eval_rows": merged(kept.get("eval_rows", []), eval_rows, EVAL_CASES)},
+                                   indent=2))  # fmt: skip
     print(f"wrote {args.out}")
 
 
