@@ -110,10 +110,10 @@ def eval_case(map_path: str, cell_m: float, policy: str, episodes: int = EVAL_EP
 
     building = resolve_train({"preset": "building"}).env
     grid = building.grid_size
-    env = EnvConfig.model_validate({**building.model_dump(), "room_size": grid * cell_m})
+    env = EnvConfig.model_validate({**building.model_dump(), "room_size": grid * cell_m, "obstacles": None})
     where = str(Path(map_path).resolve())
     fit = fit_map(env, where)
-    env = EnvConfig.model_validate({**env.model_dump(), **fit.env_overrides(where), "obstacles": None})
+    env = EnvConfig.model_validate({**env.model_dump(), **fit.env_overrides(where)})
     return EvalConfig(policy=policy, env=env, episodes=episodes)
 
 

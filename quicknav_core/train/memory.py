@@ -21,7 +21,10 @@ from quicknav_core.config import EnvConfig, EvalConfig, PPOConfig, SweepConfig, 
 from quicknav_core.config.eval import EVAL_BATCH, plan_batch
 
 MB = 2**20
-RUNTIME_BYTES = 900 * MB  # python, jax, xla, compiled programs: an evaluation (measured 840-900 MB)
+RUNTIME_BYTES = 900 * MB  # python, jax, xla, compiled programs: a rollout stream, a policy server
+# an evaluation's: what its peak holds beside the banks, the episodes and the plans (measured
+# 760-775 MB with `python -m quicknav_core.bench.memory`'s evaluation cases, grids 45 and 103)
+EVAL_RUNTIME_BYTES = 780 * MB
 # Python, JAX, XLA and the compiled programs of a training run, by trainer and network: the peak
 # of compiling them differs (GTrXL's attention programs take the most). Measured on this project's
 # CPU VM with `python -m quicknav_core.bench.memory` (peak RSS of a process that trains a few
@@ -36,6 +39,10 @@ TRAIN_RUNTIME_BYTES = {
 }
 REPLAY_FACTOR = 2.85  # peak bytes per replay-buffer byte (measured 2.69 for SAC and TD3; a margin)
 TRANSIENT_FACTOR = 2.0  # inputs and outputs of a compiled call alive together
+# the oracle's and DWA's plans, kept for every episode of a batch for the whole episode: two
+# distance fields (float32) and two usable masks over 5 x 5 nodes per cell; peak bytes per byte
+# of them (measured 1.0-1.5 at grids 45 to 203: the planners' work beside them)
+PLAN_FACTOR = 1.4
 
 
 @dataclass(frozen=True)
@@ -67,17 +74,23 @@ def _words(g: int) -> int:
 
 
 def bank_bytes(env: EnvConfig, split: str = "train") -> int:
-    """The room banks of a split (a test bank is carved beside the train bank it must avoid)."""
+    """The room banks of a split: a generated test bank is made beside the train bank it must
+    avoid; a map's test bank repeats the map alone (``MapRooms``, no train bank built)."""
     g = env.grid_size
     per_room = g * g + 2 * g * _words(g) * 4 + g * g * 4 + 4
-    rooms = env.train_rooms + (env.test_rooms + env.train_rooms if split == "test" else 0)
+    if split == "test":
+        rooms = env.test_rooms + (0 if env.rooms == "maps" else env.train_rooms)
+    else:
+        rooms = env.train_rooms
     return per_room * rooms
 
 
 def env_state_bytes(env: EnvConfig) -> int:
-    """One env's state (bit-packed walls and visits, pose, lidar, counters)."""
+    """One env's state (bit-packed walls and visits, pose, lidar, counters and, for a policy that
+    follows the plan, the plan's distance field over the grid)."""
     g = env.grid_size
-    return 3 * g * _words(g) * 4 + env.lidar_beams * 8 + 64
+    plan = g * g * 4 if env.observe_plan else 0
+    return 3 * g * _words(g) * 4 + env.lidar_beams * 8 + 64 + plan
 
 
 def network_params(cfg: TrainConfig) -> int:
@@ -143,13 +156,16 @@ def eval_memory(cfg: EvalConfig) -> Estimate:
     per_episode = env_state_bytes(env) * 2 + kept_steps
     planners = plan_batch(env.grid_size, batch)  # side by side (``jax.lax.map``), not the batch
     parts = {
-        "runtime": RUNTIME_BYTES,
+        "runtime": EVAL_RUNTIME_BYTES,
         "room banks": 2 * bank_bytes(env, cfg.split),
         "episode batch": int(TRANSIENT_FACTOR * (batch * per_episode + planners * planner)),
         "trajectories": cfg.episodes * kept_steps * 2 + gif,
     }
-    fields = {"room banks": "env.train_rooms", "episode batch": "env.grid_size",
-              "trajectories": "episodes"}  # fmt: skip
+    fields = {"room banks": "env.test_rooms" if cfg.split == "test" else "env.train_rooms",
+              "episode batch": "env.grid_size", "trajectories": "episodes"}  # fmt: skip
+    if cfg.policy in ("oracle", "dwa"):
+        parts["plans"] = int(PLAN_FACTOR * batch * nodes * (4 + 1) * 2)
+        fields["plans"] = "env.grid_size"
     return Estimate(parts, fields)
 
 
