@@ -1,14 +1,15 @@
 """Admission against reality: a job's estimated peak memory (``train.memory``, what the service
 admits jobs by) beside the peak RSS of a process that runs it as a worker does (build, compile,
 train a few chunks, write checkpoints), for every network kind and algorithm at two sizes; and
-evaluations on maps from 45 to 202 cells a side (``EVAL_CASES``: 100 episodes of a baseline with
+evaluations on maps from 45 to 203 cells a side (``EVAL_CASES``: 100 episodes of a baseline with
 the building preset's sensors, its pictures written, as an eval job runs).
 
     uv run python -m quicknav_core.bench.memory [--out benchmarks/results/memory.json] [--case NAME]
 
 Each case runs in a fresh process (``peak_rss`` reads its ``ru_maxrss``); ``tests/core/train/
 test_memory_admission.py`` (slow) holds every training case to within 10 % and README quotes the
-tables. The large evaluations take minutes each (20 min at grid 202 on 2 cores): benchmark only.
+tables. The large evaluations take long (about half an hour at grid 203 on 2 cores): benchmark only;
+``tests/core/train/test_eval_memory.py`` holds the estimate to their recorded measurements.
 """
 
 from __future__ import annotations

@@ -181,10 +181,12 @@ def test_eval__run_folder_twice_gives_identical_results(tmp_path):
     assert (tmp_path / "a" / "trajectories.png").exists() and (
         tmp_path / "a" / "episodes.gif"
     ).exists()
-    # the checkpoint folder works too
-    result = runner.invoke(app, ["eval", str(tmp_path / "run" / "checkpoint"), "--episodes", "4",
+    # the checkpoint folder works too, and names the same policy (the same episodes' numbers; the
+    # same episode count, so its program comes from the compilation cache)
+    result = runner.invoke(app, ["eval", str(tmp_path / "run" / "checkpoint"), "--episodes", "12",
                                  "--out", str(tmp_path / "c")])  # fmt: skip
     assert result.exit_code == 0, result.output
+    assert json.loads((tmp_path / "c" / "eval.json").read_text())["per_episode"] == a["per_episode"]
 
 
 @pytest.mark.slow  # compiles an evaluation and draws its GIF: ~20 s on 2 cores
