@@ -13,8 +13,8 @@ range outside [range_min, range_max] is no return), or a plain array of ranges a
 beam angles. It is resampled onto the policy's beams (the valid return closest in angle to each
 beam, within its sector) and normalised as in training. The goal is not a thing a lidar sees, but
 in training the beams that crossed the goal disc reported it; ``act`` draws the goal disc (from
-``goal`` and the trained ``goal_radius``) into the resampled scan the same way. ``pose`` and ``goal`` are in the
-room frame the policy was trained in (metres, radians).
+``goal`` and the trained ``goal_radius``) into the resampled scan the same way. ``pose`` and
+``goal`` are in the room frame the policy was trained in (metres, radians).
 
 Install: ``pip install 'quicknav-client[policy]'`` (onnxruntime).
 """

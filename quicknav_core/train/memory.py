@@ -161,7 +161,9 @@ def eval_memory(cfg: EvalConfig) -> Estimate:
         "episode batch": int(TRANSIENT_FACTOR * (batch * per_episode + planners * planner)),
         "trajectories": cfg.episodes * kept_steps * 2 + gif,
     }
-    fields = {"room banks": "env.test_rooms" if cfg.split == "test" else "env.train_rooms",
+    # a map's test bank is its largest bank; a generated test bank is made beside the train bank
+    only_test = cfg.split == "test" and env.rooms == "maps"
+    fields = {"room banks": "env.test_rooms" if only_test else "env.train_rooms",
               "episode batch": "env.grid_size", "trajectories": "episodes"}  # fmt: skip
     if cfg.policy in ("oracle", "dwa"):
         parts["plans"] = int(PLAN_FACTOR * batch * nodes * (4 + 1) * 2)
