@@ -90,16 +90,21 @@ def case_request(preset: str, overrides: dict[str, Any]) -> dict[str, Any]:
 _CACHE_VARIABLES = ("JAX_COMPILATION_CACHE_DIR", "QUICKNAV_JAX_CACHE")
 
 
-def peak_rss(request: dict[str, Any], env: dict[str, str] | None = None) -> int:
-    """Peak resident bytes of a fresh process that trains ``request`` into a temporary folder,
+def _child_peak(script: str, argument: str, env: dict[str, str] | None, timeout: float) -> int:
+    """Peak resident bytes of a fresh Python process running ``script`` with ``argument``,
     compiling every program (no persistent compilation cache)."""
     child_env = {k: v for k, v in (os.environ if env is None else env).items()
                  if k not in _CACHE_VARIABLES}  # fmt: skip
-    done = subprocess.run([sys.executable, "-c", _CHILD, json.dumps(request)], capture_output=True,
-                          text=True, env=child_env, timeout=1800)  # fmt: skip
+    done = subprocess.run([sys.executable, "-c", script, argument], capture_output=True, text=True,
+                          env=child_env, timeout=timeout)  # fmt: skip
     if done.returncode != 0:
         raise RuntimeError(f"case failed:\n{done.stderr[-3000:]}")
     return int(json.loads(done.stdout.strip().splitlines()[-1])["peak_rss"])
+
+
+def peak_rss(request: dict[str, Any], env: dict[str, str] | None = None) -> int:
+    """Peak resident bytes of a fresh process that trains ``request`` into a temporary folder."""
+    return _child_peak(_CHILD, json.dumps(request), env, timeout=1800)
 
 
 def eval_case(map_path: str, cell_m: float, policy: str, episodes: int = EVAL_EPISODES):
@@ -119,14 +124,8 @@ def eval_case(map_path: str, cell_m: float, policy: str, episodes: int = EVAL_EP
 
 
 def eval_peak_rss(cfg) -> int:
-    """Peak resident bytes of a fresh process that runs the evaluation ``cfg`` (pictures written),
-    compiling every program."""
-    child_env = {k: v for k, v in os.environ.items() if k not in _CACHE_VARIABLES}
-    done = subprocess.run([sys.executable, "-c", _EVAL_CHILD, cfg.model_dump_json()],
-                          capture_output=True, text=True, env=child_env, timeout=7200)  # fmt: skip
-    if done.returncode != 0:
-        raise RuntimeError(f"case failed:\n{done.stderr[-3000:]}")
-    return int(json.loads(done.stdout.strip().splitlines()[-1])["peak_rss"])
+    """Peak resident bytes of a fresh process that runs the evaluation ``cfg`` (pictures written)."""
+    return _child_peak(_EVAL_CHILD, cfg.model_dump_json(), None, timeout=7200)
 
 
 def estimate(request: dict[str, Any]) -> int:

@@ -22,8 +22,9 @@ from quicknav_core.config.eval import EVAL_BATCH, plan_batch
 
 MB = 2**20
 RUNTIME_BYTES = 900 * MB  # python, jax, xla, compiled programs: a rollout stream, a policy server
-# an evaluation's: what its peak holds beside the banks, the episodes and the plans (measured
-# 760-775 MB with `python -m quicknav_core.bench.memory`'s evaluation cases, grids 45 and 103)
+# an evaluation's: what its peak holds beside the banks, the episodes and the plans (inferred as
+# 760-775 MB: random-policy evaluations' peaks at grids 45 and 103, 876 and 908 MB, less the
+# other parts as estimated)
 EVAL_RUNTIME_BYTES = 780 * MB
 # Python, JAX, XLA and the compiled programs of a training run, by trainer and network: the peak
 # of compiling them differs (GTrXL's attention programs take the most). Measured on this project's

@@ -24,5 +24,6 @@ def test_eval_admission__estimate_within_ten_percent_of_the_measured_peak(name, 
     row = MEASURED[name]  # every case has been measured
     cfg = eval_case(str(ROOT / map_path), cell_m, policy)
     assert (cfg.env.grid_size, cfg.episodes) == (row["grid_size"], row["episodes"]), row
-    ratio = eval_memory(cfg).total / (row["measured_mb"] * MB)
-    assert 0.97 <= ratio <= 1.1, f"{name}: estimate {eval_memory(cfg).describe()}; measured {row['measured_mb']} MB"
+    est = eval_memory(cfg)
+    ratio = est.total / (row["measured_mb"] * MB)
+    assert 0.97 <= ratio <= 1.1, f"{name}: estimate {est.describe()}; measured {row['measured_mb']} MB"
