@@ -41,6 +41,7 @@ def drive(nav, twin, cfg, walls, start, theta, goal) -> dict:
     corner, cell = np.asarray(nav.frame["grid_corner_in_map"]), float(nav.frame["cell_m"])
     obs = twin.load(walls, start, theta, goal)
     nav.set_goal(np.asarray(goal) + corner)
+    path_m = nav.planner.path_length_m(float(start[0]), float(start[1]))
     worst, steps, info, done = 0.0, 0, {}, False
     while not done:
         s = twin.snapshot()
@@ -54,8 +55,12 @@ def drive(nav, twin, cfg, walls, start, theta, goal) -> dict:
         left, right = nav.policy.act_on(mine)
         obs, _, terminated, truncated, info = twin.step(np.array([left, right]) / cfg.max_wheel_speed)
         done, steps = terminated or truncated, steps + 1
+    end = twin.snapshot()["pos"]
+    # the share of the plan's length the robot covered (1 at the goal; none for going backwards)
+    left_m = 0.0 if info["goal_reached"] else nav.planner.path_length_m(float(end[0]), float(end[1]))
     return {"success": bool(info["goal_reached"]), "steps": steps, "max_obs_error": worst,
-            "collisions": int(twin.snapshot()["collisions"])}  # fmt: skip
+            "collisions": int(twin.snapshot()["collisions"]),
+            "progress": float(np.clip(1.0 - left_m / path_m, 0.0, 1.0))}  # fmt: skip
 
 
 def main() -> None:

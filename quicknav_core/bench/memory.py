@@ -7,7 +7,8 @@ the building preset's sensors, its pictures written, as an eval job runs).
     uv run python -m quicknav_core.bench.memory [--out benchmarks/results/memory.json] [--case NAME]
 
 Each case runs in a fresh process (``peak_rss`` reads its ``ru_maxrss``); ``tests/core/train/
-test_memory_admission.py`` (slow) holds every training case to within 10 % and README quotes the
+test_memory_admission.py`` holds every training case's estimate to within 10 % of its recorded
+measurement and, in the slow suite, measures the larger size of each kind again; README quotes the
 tables. The large evaluations take long (about half an hour at grid 203 on 2 cores): benchmark only;
 ``tests/core/train/test_eval_memory.py`` holds the estimate to their recorded measurements.
 """
