@@ -6,8 +6,12 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-# programs that compile faster than this are not worth a file
-MIN_COMPILE_TIME_S = 0.5
+# every program is worth a file, the smallest too: a command compiles a hundred or more small ones
+# (initialisers, a checkpoint's template, helpers), each in milliseconds, and loads them faster
+# than XLA compiles them. Warm, on a 2-core AMD EPYC VM: `quicknav eval RUN --episodes 100` of the
+# demo 10.7 -> 7.6 s, `quicknav export RUN` 11.5 -> 5.8 s against caching programs of 0.5 s and
+# more; the cache holds 1.7 MB after both instead of 0.4 MB
+MIN_COMPILE_TIME_S = 0.0
 
 
 def enable_compilation_cache(folder: Path | str | None) -> Path | None:

@@ -32,6 +32,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from quicknav_core.compile_cache import MIN_COMPILE_TIME_S
+
 TARGET = 0.9
 EVAL_EPISODES = 100
 EVAL_GROWTH = 1.10  # evaluate when the training time has grown by 10 % (+ EVAL_SLACK_S)
@@ -150,8 +152,10 @@ def run_in_process(row: Row, seed: int, cap_s: float, cache_dir: Path, cache: st
     """``run_one`` in a fresh Python process with its own JAX compilation cache folder."""
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "result.json"
+        # the CLI's own cache setting (quicknav_core.compile_cache); the recorded rows up to the
+        # 2026-11-27 stop were measured when it cached programs of 0.5 s and more
         env = {**os.environ, "JAX_COMPILATION_CACHE_DIR": str(cache_dir),
-               "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0.5"}  # fmt: skip
+               "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": str(MIN_COMPILE_TIME_S)}  # fmt: skip
         code = ("import sys, json, dataclasses; from pathlib import Path;"
                 "from quicknav_core.bench import time_to_target as t;"
                 f"r = t.run_one(t.ROWS[{ROW_KEYS.index(row.key)}], {seed}, {cap_s}, {cache!r});"
