@@ -118,6 +118,19 @@ def test_observer__says_when_the_goal_is_missing():
         Observer(manifest_of(env))(np.ones(env.lidar_beams), (1.0, 1.0, 0.0))
 
 
+def test_observer__a_return_beyond_the_policys_range_is_no_return():
+    """A scanner that sees farther than the policy was trained to read (the building preset reads
+    4 m): what lies beyond is no return, as in training, and what lies within is read as is."""
+    env = EnvConfig(grid_size=8, train_rooms=8, test_rooms=8, lidar_beams=8, lidar_max_range=4.0)
+    observe = Observer(manifest_of(env))
+    scan = LaserScan(angle_min=0.0, angle_increment=math.radians(45), range_max=30.0,
+                     ranges=[6.0, 3.0, 4.0, 25.0, 1.0, 4.5, np.inf, 2.0])  # fmt: skip
+    obs = observe(scan, (1.0, 1.0, 0.0), FAR)
+    ranges, wall = obs[4:12], obs[12:20]  # the layout's ranges / max range, then the wall flags
+    np.testing.assert_allclose(ranges, [1.0, 0.75, 1.0, 1.0, 0.25, 1.0, 1.0, 0.5])
+    np.testing.assert_array_equal(wall, [0, 1, 1, 0, 1, 0, 0, 1])
+
+
 # --------------------------------------------------------------------------- the journey, no JAX
 NO_JAX_DRIVER = textwrap.dedent('''
     import json, math, sys
