@@ -44,10 +44,20 @@ def wait_until_up(url: str, proc: subprocess.Popen, verify=True, timeout: float 
         time.sleep(0.2)
 
 
+# ports this process has handed out: the kernel may give a just-released port again at once, and a
+# server started with `free_port(), free_port()` for HTTP and gRPC then found both on one port
+_HANDED_OUT: set[int] = set()
+
+
 def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    """A port free now on 127.0.0.1, never one this process handed out before."""
+    while True:
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        if port not in _HANDED_OUT:
+            _HANDED_OUT.add(port)
+            return port
 
 
 class LiveServer:
