@@ -35,6 +35,13 @@ class MLPNetwork(StrictModel):
     kind: Literal["mlp"] = "mlp"
     hidden_sizes: tuple[int, ...] = Field((128, 128), min_length=1, max_length=8)
     memory_size: int = Field(0, ge=0, le=1024, description="memory head size; 0 = memoryless")
+    frames: int = Field(
+        1, ge=1, le=8,
+        description="observations the MLP reads at once: the current one and the frames-1 before"
+        " it (at an episode's start the current one stands in for those not yet seen). 2 lets a"
+        " policy read motion, such as people walking, from two lidar scans; its carry is the"
+        " frames-1 last observations, so it trains with QuickNav's PPO; needs memory_size=0",
+    )  # fmt: skip
     dropout: float = Field(
         0.0, ge=0.0, lt=1.0,
         description="dropout after each hidden layer; no trainer applies it (PPO's probability ratio"
@@ -48,6 +55,11 @@ class MLPNetwork(StrictModel):
         for i, size in enumerate(self.hidden_sizes):
             if not 1 <= size <= 4096:
                 raise ValueError(f"hidden_sizes[{i}]={size}: allowed range 1..4096")
+        if self.frames > 1 and self.memory_size:
+            raise ValueError(
+                f"frames={self.frames} with memory_size={self.memory_size}: an MLP reads past"
+                " observations or keeps a memory head, not both; allowed: frames=1 or memory_size=0"
+            )
         return self
 
 
@@ -84,7 +96,9 @@ NetworkConfig = Annotated[MLPNetwork | LSTMNetwork | GTrXLNetwork, Field(discrim
 
 def network_is_recurrent(network: MLPNetwork | LSTMNetwork | GTrXLNetwork) -> bool:
     """Whether a network carries memory between steps (everything but the plain MLP)."""
-    return not (isinstance(network, MLPNetwork) and network.memory_size == 0)
+    return not (
+        isinstance(network, MLPNetwork) and network.memory_size == 0 and network.frames == 1
+    )
 
 
 # --------------------------------------------------------------------------- algorithms
@@ -259,13 +273,14 @@ class TrainConfig(StrictModel):
             if algo.implementation == "rejax" and self.recurrent_network:
                 raise ValueError(
                     "algorithm.implementation='rejax' needs a memoryless MLP network"
-                    f" (network.kind={self.network.kind!r}); use 'auto' or 'quicknav'"
+                    f" (network.kind={self.network.kind!r}, memory_size=0, frames=1); use 'auto'"
+                    " or 'quicknav'"
                 )
         else:
             if self.recurrent_network:
                 raise ValueError(
                     f"algorithm.name={algo.name!r} trains memoryless MLPs only"
-                    f" (network.kind={self.network.kind!r}, memory_size>0 or recurrent);"
+                    f" (network.kind={self.network.kind!r}, memory_size>0, frames>1 or recurrent);"
                     " use algorithm.name='ppo' for recurrent networks"
                 )
             if algo.batch_size > algo.buffer_size:

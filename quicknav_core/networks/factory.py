@@ -10,9 +10,12 @@ from quicknav_core.networks.lstm import LSTMPolicy
 from quicknav_core.networks.mlp import MLPPolicy
 
 
-def make_network(config: MLPNetwork | LSTMNetwork | GTrXLNetwork, action_dim: int = 2) -> nn.Module:
+def make_network(
+    config: MLPNetwork | LSTMNetwork | GTrXLNetwork, action_dim: int = 2, obs_dim: int = 0
+) -> nn.Module:
     """The Flax module for a network config (all share the recurrent interface); a log-std
-    field left to the trainer (None) is what QuickNav's recurrent PPO does."""
+    field left to the trainer (None) is what QuickNav's recurrent PPO does. ``obs_dim``: the
+    observation's width, which an MLP reading past frames carries."""
     learned, init = TRAINER_LOG_STD["recurrent-ppo"]
     std = {
         "learned_log_std": learned if config.learned_log_std is None else config.learned_log_std,
@@ -22,6 +25,7 @@ def make_network(config: MLPNetwork | LSTMNetwork | GTrXLNetwork, action_dim: in
         return MLPPolicy(
             action_dim=action_dim, hidden_sizes=tuple(config.hidden_sizes),
             memory_size=config.memory_size, dropout_rate=config.dropout,
+            frames=config.frames, obs_dim=obs_dim,
             **std,
         )  # fmt: skip
     if isinstance(config, LSTMNetwork):

@@ -100,7 +100,7 @@ def network_params(cfg: TrainConfig) -> int:
     """Parameters of the policy and value networks (an upper estimate)."""
     obs, net = cfg.env.obs_dim, cfg.network
     if net.kind == "mlp":
-        sizes = [obs + net.memory_size, *net.hidden_sizes]
+        sizes = [obs * net.frames + net.memory_size, *net.hidden_sizes]
         body = sum(a * b + b for a, b in itertools.pairwise(sizes))
         return 2 * body + (net.memory_size + 8) * sizes[-1]  # actor and critic (or shared + heads)
     if net.kind == "lstm":

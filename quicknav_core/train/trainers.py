@@ -343,7 +343,7 @@ class RecurrentPPOTrainer(Trainer):
     def __init__(self, config: TrainConfig, runtime: Runtime | None = None):
         super().__init__(config, runtime)
         algo: PPOConfig = config.algorithm
-        self.network = make_network(config.network)
+        self.network = make_network(config.network, obs_dim=self.env.obs_dim)
         self.algo = RecurrentPPO(
             self.env, self.env_params, self.network, num_envs=config.num_envs,
             num_steps=algo.num_steps, num_minibatches=algo.num_minibatches,

@@ -21,6 +21,9 @@ KINDS = {
     "sac-mlp": ("paper-sac", {"num_envs": 16, "total_steps": 4096}),
     "td3-mlp": ("paper-td3", {"num_envs": 16, "total_steps": 4096}),
     "mlp-memory": ("paper-mlp", {"num_envs": 16, "algorithm.num_steps": 16, "total_steps": 512}),
+    # the building preset's network: an MLP reading the observation before this one too
+    "mlp-frames": ("paper-mlp", {"num_envs": 16, "algorithm.num_steps": 16, "total_steps": 512,
+                                 "network.memory_size": 0, "network.frames": 2}),
     "lstm": ("paper-lstm", {"num_envs": 16, "algorithm.num_steps": 16, "total_steps": 512}),
     "gtrxl": ("paper-gtrxl", {"num_envs": 16, "algorithm.num_steps": 16, "total_steps": 512}),
 }
@@ -87,7 +90,7 @@ def test_export__dynamic_batch_and_the_manifest_a_robot_reads(exported):
     assert doc["provenance"]["job_id"] == "test"
     assert doc["provenance"]["env_steps"] > 0 or kind != "ppo-mlp"  # the trained run says how far
     assert doc["env"] == config.env.model_dump(mode="json")
-    assert doc["recurrent"] == (kind in ("mlp-memory", "lstm", "gtrxl"))
+    assert doc["recurrent"] == (kind in ("mlp-memory", "mlp-frames", "lstm", "gtrxl"))
     # any batch size runs; a state starts from its documented initial value
     for batch in (1, 7):
         rng = np.random.default_rng(batch)

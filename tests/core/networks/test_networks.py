@@ -1,4 +1,5 @@
-"""The recurrent interface: carries reset at episode starts; GTrXL never looks across one."""
+"""The recurrent interface: carries reset at episode starts; GTrXL never looks across one; the
+networks that replay a sequence at once (GTrXL, memoryless MLPs) give the step-by-step numbers."""
 
 import jax
 import jax.numpy as jnp
@@ -11,6 +12,7 @@ from quicknav_core.networks import make_network
 NETWORKS = {
     "mlp": MLPNetwork(hidden_sizes=(16,)),
     "mlp-memory": MLPNetwork(hidden_sizes=(16,), memory_size=8),
+    "mlp-frames": MLPNetwork(hidden_sizes=(16,), frames=3),
     "lstm": LSTMNetwork(num_layers=2, hidden_size=6),
     "gtrxl": GTrXLNetwork(embed_size=8, num_heads=2, head_size=4, num_layers=2, memory_length=5),
 }
@@ -18,7 +20,7 @@ OBS = 7
 
 
 def _init(name, batch=3):
-    net = make_network(NETWORKS[name])
+    net = make_network(NETWORKS[name], obs_dim=OBS)
     carry = net.initial_carry(batch)
     obs = jnp.ones((batch, OBS))
     params = net.init(jax.random.PRNGKey(0), carry, obs, jnp.ones((batch,), bool))
@@ -56,7 +58,7 @@ def test_carry__resets_exactly_at_episode_start(name):
         assert not np.allclose(np.asarray(out_busy.mean)[1], np.asarray(out_fresh.mean)[1])
 
 
-@pytest.mark.parametrize("name", ["mlp-memory", "lstm", "gtrxl"])
+@pytest.mark.parametrize("name", ["mlp-memory", "mlp-frames", "lstm", "gtrxl"])
 def test_memory__earlier_episode_cannot_influence_current_output(name):
     net, params = _init(name, batch=2)
     t_len, boundary = 12, 6
@@ -129,3 +131,43 @@ def test_gtrxl__whole_sequence_at_once_equals_step_by_step(memory_length):
     g_step = jax.jit(jax.grad(lambda p: loss(p, steps)))(params)
     for a, b in zip(jax.tree.leaves(g_seq), jax.tree.leaves(g_step), strict=True):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-3, atol=1e-5)
+
+
+def test_mlp_frames__reads_exactly_the_last_frames_observations():
+    """frames=3: the output at t depends on obs[t-2..t] and on nothing older; at an episode's
+    second step the first observation stands in for the one not yet seen."""
+    net, params = _init("mlp-frames", batch=1)
+    t_len = 8
+    obs = jax.random.normal(jax.random.PRNGKey(5), (t_len, 1, OBS))
+    start = jnp.zeros((t_len, 1), bool).at[0].set(True)
+    mean_a, _ = _run(net, params, obs, start)
+    mean_b, _ = _run(net, params, obs.at[2].add(4.0), start)
+    np.testing.assert_allclose(mean_a[:2], mean_b[:2], atol=1e-6)  # before it: untouched
+    for t in (2, 3, 4):  # it is read at t = 2, 3, 4 ...
+        assert not np.allclose(mean_a[t], mean_b[t])
+    np.testing.assert_allclose(mean_a[5:], mean_b[5:], atol=1e-6)  # ... and forgotten after
+    # at step 1 the MLP reads [obs1, obs0, obs0]: the same as a 3-frame input built by hand
+    x = jnp.concatenate([obs[1], obs[0], obs[0]], axis=-1)
+    plain = make_network(MLPNetwork(hidden_sizes=(16,)))
+    out = plain.apply(params, (), x, jnp.zeros((1,), bool))[1]
+    np.testing.assert_allclose(np.asarray(out.mean), mean_a[1], rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("name", ["mlp", "mlp-frames"])
+def test_mlp__whole_sequence_at_once_equals_step_by_step(name):
+    """A memoryless MLP (past frames or not) replays a (T, B) sequence in one call: the same
+    numbers as step by step from any carry, episode starts anywhere."""
+    net, params = _init(name, batch=4)
+    assert net.parallel_sequence
+
+    def step(carry, xs):
+        return net.apply(params, carry, *xs)
+
+    warm = jax.random.normal(jax.random.PRNGKey(2), (3, 4, OBS))
+    carry0, _ = jax.lax.scan(step, net.initial_carry(4), (warm, jnp.zeros((3, 4), bool).at[0].set(True)))
+    obs = jax.random.normal(jax.random.PRNGKey(3), (20, 4, OBS))
+    start = (jax.random.uniform(jax.random.PRNGKey(4), (20, 4)) < 0.15).at[0, 2].set(True).at[1, 1].set(True)
+    _, by_step = jax.lax.scan(step, carry0, (obs, start))
+    _, at_once = net.apply(params, carry0, obs, start)
+    for a, b in ((at_once.mean, by_step.mean), (at_once.value, by_step.value)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=2e-5, atol=2e-6)

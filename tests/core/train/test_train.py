@@ -30,6 +30,7 @@ def tiny(network, algorithm=None, **kw):
 
 RECURRENT = {
     "mlp-memory": {"kind": "mlp", "hidden_sizes": [16], "memory_size": 8},
+    "mlp-frames": {"kind": "mlp", "hidden_sizes": [16], "frames": 3},
     "lstm": {"kind": "lstm", "num_layers": 2, "hidden_size": 8},
     "gtrxl": {
         "kind": "gtrxl",
@@ -192,6 +193,12 @@ def test_same_seed_same_metrics(tmp_path):
         (["--preset", "nope"], "unknown preset 'nope'"),
         (["--network", "cnn"], "--network 'cnn'"),
         (["--algo", "sac", "--network", "lstm"], "trains memoryless MLPs only"),
+        (["--algo", "td3", "--set", "network.frames=2"], "memory_size>0, frames>1 or recurrent"),
+        (["--set", "algorithm.implementation=rejax", "--set", "network.frames=2"],
+         "needs a memoryless MLP network (network.kind='mlp', memory_size=0, frames=1)"),
+        (["--set", "network.frames=2", "--set", "network.memory_size=8"],
+         "frames=2 with memory_size=8: an MLP reads past observations or keeps a memory head"),
+        (["--set", "network.frames=9"], "network.frames: Input should be less than or equal to 8"),
         (["--set", "num_envs=0"], "num_envs"),
     ],
 )
