@@ -18,6 +18,14 @@ robot's disc fits, a diagonal step only between two free orthogonal neighbours: 
 simulator plans on, so the waypoints are the ones the policy was trained with (where two paths are
 equally short, the one it descends may differ).
 
+Re-planning when blocked: the map does not show a closed door, a pallet across an aisle or a
+crowd. When the plan's length left has not shrunk by a cell for ``replan_after_s`` seconds of
+``act`` calls (one per control period), the Navigator marks the cells where the current scan
+returns within ``mark_range_m`` as blocked and plans again on the map with them; the policy then
+follows the new plan's waypoints. Marks last until the next goal; when the goal cannot be reached
+with them, they are dropped and the map's own plan stays (``blocked_cells`` counts them,
+``replans`` the re-plans made).
+
 Install: ``pip install 'quicknav-client[navigate]'`` (onnxruntime and SciPy).
 """
 
@@ -29,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from quicknav_client.policy import OnnxPolicy
+from quicknav_client.policy import OnnxPolicy, _field
 
 f32 = np.float32
 MAP_FILE = "map.npz"
@@ -172,23 +180,60 @@ class GridPlanner:
         return math.inf if d >= UNREACHABLE else d * self.cell
 
 
+def scan_points(scan: Any, beam_angles: np.ndarray, pose: Any, beyond: float = 0.0) -> np.ndarray:
+    """(n, 2) x, y of a scan's valid returns for a robot at ``pose`` (x, y, yaw), each pushed
+    ``beyond`` metres further along its beam (into what it hit). A plain array of ranges is read
+    at the policy's beams (``beam_angles``); a LaserScan at its own angles."""
+    if isinstance(scan, np.ndarray | list | tuple):
+        ranges = np.asarray(scan, np.float64).reshape(-1)
+        angles, lo, hi = np.asarray(beam_angles, np.float64)[: ranges.size], 0.0, math.inf
+    else:
+        ranges = np.asarray(_field(scan, "ranges"), np.float64).reshape(-1)
+        angles = float(_field(scan, "angle_min")) + float(_field(scan, "angle_increment")) * np.arange(ranges.size)
+        lo, hi = float(_field(scan, "range_min", 0.0) or 0.0), float(_field(scan, "range_max", math.inf))
+    ok = np.isfinite(ranges) & (ranges >= lo) & (ranges <= hi)
+    x, y, yaw = (float(v) for v in pose)
+    r, a = ranges[ok] + beyond, angles[ok] + yaw
+    return np.stack([x + r * np.cos(a), y + r * np.sin(a)], axis=-1)
+
+
 class Navigator:
     """An exported plan-following policy on its map: ``set_goal`` once per goal, then ``act``
-    with every scan. Poses and goals are in the map frame (the YAML's ``origin`` frame, as tf2 and
-    RViz give them); a pose off the map is an error, never an action."""
+    with every scan, once per control period. Poses and goals are in the map frame (the YAML's
+    ``origin`` frame, as tf2 and RViz give them); a pose off the map is an error, never an action.
 
-    def __init__(self, policy: OnnxPolicy, walls: np.ndarray, frame: dict[str, Any]):
+    ``replan_after_s`` (None: never) and ``mark_range_m``: re-planning when blocked (the module's
+    doc)."""
+
+    def __init__(self, policy: OnnxPolicy, walls: np.ndarray, frame: dict[str, Any],
+                 replan_after_s: float | None = 5.0, mark_range_m: float = 3.0):  # fmt: skip
         m = policy.manifest
         env = m["env"]
         if not env.get("observe_plan"):
             raise ValueError("this policy does not follow a plan (env.observe_plan false): drive it"
                              " with OnnxPolicy.act(scan, pose, goal) in its room's frame")  # fmt: skip
+        if replan_after_s is not None and not replan_after_s > 0:
+            raise ValueError(f"replan_after_s={replan_after_s}: allowed: > 0 seconds, or None (never)")
+        if not mark_range_m > 0:
+            raise ValueError(f"mark_range_m={mark_range_m}: allowed: > 0 metres")
         self.policy = policy
         self.frame = frame
         self.corner = np.asarray(frame["grid_corner_in_map"], np.float64)  # grid (0, 0) in the map frame
-        self.planner = GridPlanner(walls, float(frame["cell_m"]), float(env["robot_radius"]),
-                                   int(env["plan_lookahead"]), int(env["plan_waypoints"]))  # fmt: skip
+        self.walls = np.asarray(walls, bool)
+        self._planner_args = (float(frame["cell_m"]), float(env["robot_radius"]),
+                              int(env["plan_lookahead"]), int(env["plan_waypoints"]))  # fmt: skip
+        self.planner = GridPlanner(self.walls, *self._planner_args)
         self.goal_grid: np.ndarray | None = None
+        self.period_s = float(env["dt"])
+        self.replan_after_s, self.mark_range_m = replan_after_s, float(mark_range_m)
+        self.blocked = np.zeros_like(self.walls)
+        self.replans = 0
+        self._best_left, self._stalled = math.inf, 0
+
+    @property
+    def blocked_cells(self) -> int:
+        """Cells the Navigator marked blocked for this goal (none: the map's own plan)."""
+        return int(self.blocked.sum())
 
     @classmethod
     def load(cls, folder: str | Path) -> Navigator:
@@ -208,10 +253,14 @@ class Navigator:
         return x - float(self.corner[0]), y - float(self.corner[1])
 
     def set_goal(self, goal: Any) -> None:
-        """A new goal (x, y) in the map frame: plan to it and start a new episode."""
+        """A new goal (x, y) in the map frame: plan to it on the map (marks of the last goal
+        dropped) and start a new episode."""
         gx, gy = self.to_grid(float(goal[0]), float(goal[1]))
-        self.planner.plan((gx, gy))
+        planner = self.planner if not self.blocked.any() else GridPlanner(self.walls, *self._planner_args)
+        planner.plan((gx, gy))
+        self.planner, self.blocked = planner, np.zeros_like(self.walls)
         self.goal_grid = np.asarray([gx, gy], f32)
+        self.replans, self._best_left, self._stalled = 0, math.inf, 0
         self.policy.reset()
 
     def observation(self, scan: Any, pose: Any) -> np.ndarray:
@@ -221,15 +270,76 @@ class Navigator:
         x, y, yaw = (float(v) for v in pose)
         gx, gy = self.to_grid(x, y)
         r, c = self.planner.cell_of(gx, gy)
-        if self.planner.walls[r, c]:
+        if self.walls[r, c]:
             raise ValueError(f"pose ({x:.2f}, {y:.2f}) m lies in a wall cell of the map: check the"
                              " localisation (map -> base_link)")  # fmt: skip
         grid_pose = (gx, gy, yaw)
         return self.policy.observation(scan, grid_pose, self.goal_grid, self.planner.features(grid_pose))
 
     def act(self, scan: Any, pose: Any) -> tuple[float, float]:
-        """(left, right) wheel speeds in m/s for this step."""
-        return self.policy.act_on(self.observation(scan, pose))
+        """(left, right) wheel speeds in m/s for this step (re-planning first if blocked)."""
+        obs = self.observation(scan, pose)
+        if self.replan_after_s is not None:
+            gx, gy = self.to_grid(float(pose[0]), float(pose[1]))
+            left = self.planner.path_length_m(gx, gy)
+            if left <= self._best_left - self.planner.cell:  # a cell nearer: progress
+                self._best_left, self._stalled = left, 0
+            else:
+                self._stalled += 1
+            if self._stalled * self.period_s >= self.replan_after_s:
+                self._stalled = 0
+                if self.replan(scan, pose):
+                    self._best_left = self.planner.path_length_m(gx, gy)
+                    obs = self.observation(scan, pose)
+        return self.policy.act_on(obs)
+
+    def replan(self, scan: Any, pose: Any) -> bool:
+        """Mark the scan's returns within ``mark_range_m`` as blocked (never the robot's or the
+        goal's cell) and plan again on the map with every mark so far; True if the plan changed
+        the marks (a plan that cannot reach the goal with them drops them all: False)."""
+        if self.goal_grid is None:
+            raise ValueError("no goal: call set_goal((x, y)) first")
+        gx, gy = self.to_grid(float(pose[0]), float(pose[1]))
+        cell = self.planner.cell
+        angles = np.asarray(self.policy.manifest["lidar"]["beam_angles_rad"], np.float64)
+        # a tenth of a cell past the return: a hit on a cell's edge marks the cell it hit
+        points = scan_points(scan, angles, (gx, gy, float(pose[2])), beyond=0.1 * cell)
+        near = np.hypot(points[:, 0] - gx, points[:, 1] - gy) <= self.mark_range_m
+        rows, cols = self.walls.shape
+        rc = np.floor(points[near][:, ::-1] / cell).astype(np.int64)
+        rc = rc[(rc[:, 0] >= 0) & (rc[:, 0] < rows) & (rc[:, 1] >= 0) & (rc[:, 1] < cols)]
+        marks = self.blocked.copy()
+        marks[rc[:, 0], rc[:, 1]] = True
+        marks &= ~self.walls
+        for x, y in ((gx, gy), (float(self.goal_grid[0]), float(self.goal_grid[1]))):
+            marks[self.planner.cell_of(x, y)] = False
+        if (marks == self.blocked).all():
+            return False
+        # a robot wider than a cell: marks at its side close its own cell on the inflated grid,
+        # so if every mark walls it in, try again without those within its radius and a cell
+        centres_r, centres_c = np.nonzero(marks)
+        gap = np.hypot((centres_c + 0.5) * cell - gx, (centres_r + 0.5) * cell - gy)
+        side = np.zeros_like(marks)
+        side[centres_r, centres_c] = gap <= self._planner_args[1] + cell
+        planner = None
+        for tried in (marks, marks & ~side) if side.any() else (marks,):
+            candidate = GridPlanner(self.walls | tried, *self._planner_args)
+            try:
+                candidate.plan(self.goal_grid)
+                if not math.isinf(candidate.path_length_m(gx, gy)):
+                    planner, marks = candidate, tried
+                    break
+            except ValueError:  # the goal closed by the marks (a robot wider than a cell)
+                pass
+        if planner is None:  # the marks leave no way to the goal: the map's plan, marks dropped
+            if self.blocked.any():
+                self.planner = GridPlanner(self.walls, *self._planner_args)
+                self.planner.plan(self.goal_grid)
+            self.blocked = np.zeros_like(self.walls)
+            return False
+        self.planner, self.blocked = planner, marks
+        self.replans += 1
+        return True
 
     def reached(self, pose: Any) -> bool:
         """Whether ``pose`` is within the trained goal radius of the goal."""

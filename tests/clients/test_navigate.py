@@ -165,3 +165,89 @@ def test_eval_map__lies_over_a_config_env_and_under_set(tmp_path):
     env = json.loads(r.stdout)["env"]
     fine = fit_map(EnvConfig(room_size=4.0, grid_size=16), OFFICE)  # 0.25 m cells
     assert env["grid_size"] == fine.grid_size > 64 and env["room_size"] == pytest.approx(fine.room_size)
+
+
+class Pursuit(StandIn):
+    """A stand-in policy that steers at the plan's first waypoint (no learning): what the
+    Navigator's re-planning gives it is what it drives."""
+
+    def act_on(self, obs):
+        env = self.manifest["env"]
+        w = env["plan_waypoints"]
+        fwd, left = (float(v) for v in obs[-(2 * w + 1) : -(2 * w - 1)])
+        angle = math.atan2(left, fwd)
+        speed = env["max_wheel_speed"]
+        v = 0.6 * speed * max(math.cos(angle), 0.0)
+        turn = 1.5 * angle * env["wheel_base"] / 2
+        return (float(np.clip(v - turn, -speed, speed)), float(np.clip(v + turn, -speed, speed)))
+
+
+def _ring_and_wall():
+    """A ring corridor round a block (the map), the short way round (the top) closed by a wall
+    the map does not show (the world)."""
+    walls = np.ones((24, 24), bool)
+    walls[1:23, 1:23] = False
+    walls[7:18, 4:20] = True  # the block: the top corridor (rows 1-6) is the shorter way
+    world = walls.copy()
+    world[1:7, 12] = True  # a closed door across the top corridor
+    return walls, world
+
+
+def _drive(nav, twin, cfg, world, start, goal, steps):
+    from quicknav_core.env.constants import HIT_NONE
+    from quicknav_core.env.numpy_env import cast_lidar_np
+
+    angles = np.asarray(nav.policy.manifest["lidar"]["beam_angles_rad"], np.float32)
+    twin.load(world, np.asarray(start, np.float32), 0.0, np.asarray(goal, np.float32))
+    nav.set_goal(goal)  # the grid's corner is the map frame's origin here
+    for _ in range(steps):
+        s = twin.snapshot()
+        ranges, hits = cast_lidar_np(s["pos"], s["theta"], np.full(2, -1e4, np.float32), s["walls"],
+                                     angles, cfg.cell_size, cfg.lidar_max_range, cfg.goal_radius)  # fmt: skip
+        pose = (float(s["pos"][0]), float(s["pos"][1]), float(s["theta"]))
+        left, right = nav.act(np.where(hits == HIT_NONE, np.inf, ranges), pose)
+        _, _, terminated, truncated, info = twin.step(np.array([left, right]) / cfg.max_wheel_speed)
+        if terminated or truncated:
+            return bool(info["goal_reached"])
+    return False
+
+
+def test_navigator__replans_around_a_closed_door_the_map_does_not_show():
+    """In the NumPy twin, a wall closes the plan's way; a plan follower is stuck there for good
+    without re-planning, and with it the Navigator marks what the lidar sees, plans the long way
+    round and reaches the goal. A new goal drops the marks."""
+    cfg = EnvConfig(**{**PLAN, "lidar_beams": 32, "lidar_max_range": 4.0, "max_steps": 800})
+    twin = QuickNavNumpyEnv(cfg, split="test")
+    walls, world = _ring_and_wall()
+    frame = {"cell_m": cfg.cell_size, "grid_corner_in_map": [0.0, 0.0]}
+    start, goal = (1.25, 5.25), (10.75, 5.25)  # left and right of the block, the top way shorter
+    stuck = Navigator(Pursuit(cfg), walls, frame, replan_after_s=None)
+    assert not _drive(stuck, twin, cfg, world, start, goal, 800)
+    assert stuck.replans == 0 and twin.snapshot()["pos"][0] < 6.0  # it stays at the door
+    # (pressed against the door, its 32 beams see a few of the door's cells at a time: it marks
+    # them, tries the plan left, and after a re-plan or two the long way round is the plan)
+    nav = Navigator(Pursuit(cfg), walls, frame, replan_after_s=2.0)
+    assert _drive(nav, twin, cfg, world, start, goal, 800)
+    assert nav.replans >= 1 and nav.blocked[1:7, 12].sum() >= 3, nav.blocked.sum()
+    assert world[nav.blocked].all()  # every mark lies on the door, none in free space
+    nav.set_goal(start)
+    assert nav.blocked_cells == 0 and nav.replans == 0
+
+
+def test_navigator__replan_refusals_and_a_walled_in_robot_keeps_the_map_plan():
+    cfg = EnvConfig(**{**PLAN, "lidar_beams": 16})
+    walls, _ = _ring_and_wall()
+    frame = {"cell_m": cfg.cell_size, "grid_corner_in_map": [0.0, 0.0]}
+    with pytest.raises(ValueError, match=r"replan_after_s=0: allowed: > 0 seconds, or None"):
+        Navigator(StandIn(cfg), walls, frame, replan_after_s=0)
+    with pytest.raises(ValueError, match=r"mark_range_m=-1: allowed: > 0 metres"):
+        Navigator(StandIn(cfg), walls, frame, mark_range_m=-1)
+    nav = Navigator(StandIn(cfg), walls, frame)
+    nav.set_goal((10.75, 5.25))
+    before = nav.planner.field.copy()
+    # a 360-reading scan with returns all round at 1.2 m: every way out closed, so the marks go
+    # and the map's plan stays
+    ring = {"angle_min": -math.pi, "angle_increment": math.pi / 180, "ranges": [1.2] * 360}
+    assert not nav.replan(ring, (1.25, 5.25, 0.0))
+    assert nav.blocked_cells == 0 and nav.replans == 0
+    np.testing.assert_array_equal(nav.planner.field, before)

@@ -100,3 +100,38 @@ def drive_with_navigator(folder, env_config: dict, episodes: int) -> dict:
             "progress": sum(r["progress"] for r in rows) / episodes,
             "max_obs_error": max(r["max_obs_error"] for r in rows),
             "steps": sum(r["steps"] for r in rows)}  # fmt: skip
+
+
+@pytest.mark.slow  # the test run's building policy, exported, driven by the Navigator: ~10 s
+def test_navigator__the_learned_planner_replans_around_a_door_the_map_does_not_show(
+    trained_building_run, tmp_path
+):
+    """The SDK's Navigator with the building policy (onnxruntime) in the NumPy twin: a ring
+    corridor whose short way is closed by a wall the map does not show. Without re-planning the
+    policy presses on at the door until the step limit (the plan runs through it, and it never
+    met a wall across its plan in training); with the Navigator's default re-planning it goes the
+    long way round and reaches every goal."""
+    from quicknav_client.navigate import Navigator
+    from quicknav_client.policy import OnnxPolicy
+
+    from quicknav_core.config import EnvConfig
+    from quicknav_core.env.numpy_env import QuickNavNumpyEnv
+    from quicknav_core.export import export_run
+    from tests.clients.test_navigate import _drive, _ring_and_wall
+
+    export_run(trained_building_run, tmp_path / "robot")
+    policy = OnnxPolicy.load(tmp_path / "robot")
+    # the policy's own env in the ring; contacts do not end the episode, so that the door holds it
+    env = {**policy.manifest["env"], "rooms": "floorplan", "obstacles": None, "max_steps": 800,
+           "end_on_collision": False}  # fmt: skip
+    cfg = EnvConfig.model_validate(env)
+    twin = QuickNavNumpyEnv(cfg, split="test")
+    walls, world = _ring_and_wall()
+    frame = {"cell_m": cfg.cell_size, "grid_corner_in_map": [0.0, 0.0]}
+    trips = (((1.25, 5.25), (10.75, 5.25)), ((1.75, 4.25), (10.75, 4.75)), ((10.75, 5.25), (1.25, 5.25)))
+    for start, goal in trips:
+        stuck = Navigator(policy, walls, frame, replan_after_s=None)
+        assert not _drive(stuck, twin, cfg, world, start, goal, 800), (start, goal)
+        nav = Navigator(policy, walls, frame)  # re-planning after 5 s without progress
+        reached = _drive(nav, twin, cfg, world, start, goal, 800)
+        assert reached and nav.replans >= 1 and world[nav.blocked].all(), (start, goal, nav.replans)
