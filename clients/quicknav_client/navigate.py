@@ -236,7 +236,8 @@ class Navigator:
         return int(self.blocked.sum())
 
     @classmethod
-    def load(cls, folder: str | Path) -> Navigator:
+    def load(cls, folder: str | Path, replan_after_s: float | None = 5.0,
+             mark_range_m: float = 3.0) -> Navigator:  # fmt: skip
         """The policy and the map ``quicknav export RUN --map MAP --out FOLDER`` wrote."""
         folder = Path(folder)
         policy = OnnxPolicy.load(folder)
@@ -246,7 +247,7 @@ class Navigator:
                              " --map YOUR_MAP.yaml --out FOLDER` to add one")  # fmt: skip
         with np.load(folder / frame.get("file", MAP_FILE)) as data:
             walls = np.asarray(data["walls"], bool)
-        return cls(policy, walls, frame)
+        return cls(policy, walls, frame, replan_after_s, mark_range_m)
 
     def to_grid(self, x: float, y: float) -> tuple[float, float]:
         """A map-frame point in the planner's grid frame."""
