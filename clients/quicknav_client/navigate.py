@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from quicknav_client.policy import OnnxPolicy, _field
+from quicknav_client.policy import OnnxPolicy, scan_arrays
 
 f32 = np.float32
 MAP_FILE = "map.npz"
@@ -184,14 +184,7 @@ def scan_points(scan: Any, beam_angles: np.ndarray, pose: Any, beyond: float = 0
     """(n, 2) x, y of a scan's valid returns for a robot at ``pose`` (x, y, yaw), each pushed
     ``beyond`` metres further along its beam (into what it hit). A plain array of ranges is read
     at the policy's beams (``beam_angles``); a LaserScan at its own angles."""
-    if isinstance(scan, np.ndarray | list | tuple):
-        ranges = np.asarray(scan, np.float64).reshape(-1)
-        angles, lo, hi = np.asarray(beam_angles, np.float64)[: ranges.size], 0.0, math.inf
-    else:
-        ranges = np.asarray(_field(scan, "ranges"), np.float64).reshape(-1)
-        angles = float(_field(scan, "angle_min")) + float(_field(scan, "angle_increment")) * np.arange(ranges.size)
-        lo, hi = float(_field(scan, "range_min", 0.0) or 0.0), float(_field(scan, "range_max", math.inf))
-    ok = np.isfinite(ranges) & (ranges >= lo) & (ranges <= hi)
+    ranges, angles, ok = scan_arrays(scan, np.asarray(beam_angles))
     x, y, yaw = (float(v) for v in pose)
     r, a = ranges[ok] + beyond, angles[ok] + yaw
     return np.stack([x + r * np.cos(a), y + r * np.sin(a)], axis=-1)

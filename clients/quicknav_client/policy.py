@@ -50,18 +50,15 @@ def _field(scan: Any, name: str, default: Any = None) -> Any:
     return getattr(scan, name, default)
 
 
-def resample(scan: Any, beam_angles: np.ndarray, fov_deg: float, max_range: float) -> np.ndarray:
-    """Ranges (float32, metres, ``inf`` where no return) at the policy's beams: for each beam, the
-    valid return closest in angle to the beam's direction (the ray the simulator's beam measures),
-    looked for within the beam's sector (the half-open interval halfway to its neighbours; the edge
-    beams of a partial field of view get a sector as wide as the inner ones); two returns as close
-    give the shorter range; a sector without a valid return is no return."""
-    beams = beam_angles.size
+def scan_arrays(scan: Any, beam_angles: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(ranges, angles, valid) of a scan, float64 metres and radians: a plain array of ranges is
+    read at the policy's beams (``beam_angles``), a LaserScan at its own angles; valid: finite
+    and within the scan's range_min..range_max."""
     if isinstance(scan, np.ndarray | list | tuple):
         ranges = np.asarray(scan, np.float64).reshape(-1)
-        if ranges.size != beams:
-            raise ValueError(f"scan: {ranges.size} ranges given as an array; the policy has {beams}"
-                             " beams (give a LaserScan for any other layout)")  # fmt: skip
+        if ranges.size != beam_angles.size:
+            raise ValueError(f"scan: {ranges.size} ranges given as an array; the policy has"
+                             f" {beam_angles.size} beams (give a LaserScan for any other layout)")  # fmt: skip
         angles, lo, hi = beam_angles.astype(np.float64), 0.0, math.inf
     else:
         ranges = np.asarray(_field(scan, "ranges"), np.float64).reshape(-1)
@@ -70,7 +67,17 @@ def resample(scan: Any, beam_angles: np.ndarray, fov_deg: float, max_range: floa
             raise ValueError("scan: needs angle_min, angle_increment and ranges (a ROS LaserScan's fields)")
         angles = float(a0) + float(inc) * np.arange(ranges.size)
         lo, hi = float(_field(scan, "range_min", 0.0) or 0.0), float(_field(scan, "range_max", math.inf))
-    valid = np.isfinite(ranges) & (ranges >= lo) & (ranges <= hi)
+    return ranges, angles, np.isfinite(ranges) & (ranges >= lo) & (ranges <= hi)
+
+
+def resample(scan: Any, beam_angles: np.ndarray, fov_deg: float, max_range: float) -> np.ndarray:
+    """Ranges (float32, metres, ``inf`` where no return) at the policy's beams: for each beam, the
+    valid return closest in angle to the beam's direction (the ray the simulator's beam measures),
+    looked for within the beam's sector (the half-open interval halfway to its neighbours; the edge
+    beams of a partial field of view get a sector as wide as the inner ones); two returns as close
+    give the shorter range; a sector without a valid return is no return."""
+    beams = beam_angles.size
+    ranges, angles, valid = scan_arrays(scan, beam_angles)
     if fov_deg >= 360.0 or beams == 1:
         width = 2.0 * math.pi / beams
     else:
