@@ -1,6 +1,7 @@
 """Trainers behind one interface: rejax's PPO/SAC/TD3 for memoryless MLPs, our recurrent PPO otherwise.
 
-``make_trainer(TrainConfig, runtime)`` returns a ``Trainer`` with
+``make_trainer(TrainConfig, runtime)`` returns a ``Trainer`` (on the env its config builds; ``env=``
+gives it another, a test's probe env) with
   init_state() -> state              (from the config's seed)
   run_unit(state) -> (state, unit metrics)   one compiled call of ``updates_per_unit`` updates
   finish_chunk(state, [unit metrics]) -> (state, metrics)   a chunk's metrics, episode totals cleared
@@ -138,7 +139,7 @@ class Trainer:
     # top-level state fields whose leading axis is the env batch (sharded over devices)
     BATCH_FIELDS: tuple[str, ...] = ()
 
-    def __init__(self, config: TrainConfig, runtime: Runtime | None = None):
+    def __init__(self, config: TrainConfig, runtime: Runtime | None = None, env: tuple | None = None):
         self.config = config
         self.runtime = runtime_or_new(runtime)
         self.devices = local_devices(config.devices)
@@ -149,10 +150,18 @@ class Trainer:
             )
         self.mesh = (jax.sharding.Mesh(self.devices, ("envs",)) if len(self.devices) > 1
                      else None)  # fmt: skip
-        # nothing here reads the final observations: do not pay a second lidar cast for them
-        self.env, self.env_params = config.env.model_copy(update={"final_obs": False}).build(
-            "train", self.runtime
-        )
+        if env is not None:
+            # (env, params) instead of config.env's: a probe env that learns in seconds (tests), any
+            # gymnax env whose step reports info["goal_reached"] and info["collision"]
+            if config.curriculum.enabled:
+                raise ValueError("curriculum.enabled draws its pool from config.env; a trainer given"
+                                 " its own env takes curriculum.enabled=false")  # fmt: skip
+            self.env, self.env_params = env
+        else:
+            # nothing here reads the final observations: do not pay a second lidar cast for them
+            self.env, self.env_params = config.env.model_copy(update={"final_obs": False}).build(
+                "train", self.runtime
+            )
         self.pool = None
         if config.curriculum.enabled:
             from quicknav_core.train.curriculum import first_level, make_pool, with_pool
@@ -340,8 +349,8 @@ class RecurrentPPOTrainer(Trainer):
 
     BATCH_FIELDS = ("env_state", "obs", "start", "carry", "stats")
 
-    def __init__(self, config: TrainConfig, runtime: Runtime | None = None):
-        super().__init__(config, runtime)
+    def __init__(self, config: TrainConfig, runtime: Runtime | None = None, env: tuple | None = None):
+        super().__init__(config, runtime, env)
         algo: PPOConfig = config.algorithm
         self.network = make_network(config.network, obs_dim=self.env.obs_dim)
         self.algo = RecurrentPPO(
@@ -420,8 +429,8 @@ class RejaxTrainer(Trainer):
 
     BATCH_FIELDS = ("env_state", "last_obs", "last_done", "rew_rms_state")
 
-    def __init__(self, config: TrainConfig, runtime: Runtime | None = None):
-        super().__init__(config, runtime)
+    def __init__(self, config: TrainConfig, runtime: Runtime | None = None, env: tuple | None = None):
+        super().__init__(config, runtime, env)
         import rejax
 
         from quicknav_core.train import rejax_parts
@@ -544,9 +553,10 @@ def _rejax_unit(algo, train_state):
     return algo.train(train_state=train_state)[0]
 
 
-def make_trainer(config: TrainConfig, runtime: Runtime | None = None) -> Trainer:
+def make_trainer(config: TrainConfig, runtime: Runtime | None = None, env: tuple | None = None) -> Trainer:
     """The trainer for a config (``config.trainer_kind`` says which); its room banks and
-    shareable compiled parts come from ``runtime``."""
+    shareable compiled parts come from ``runtime``. ``env``: (env, params) to train on instead of
+    the env ``config.env`` builds (the tests' probe envs, ``tests/core/train/probes.py``)."""
     if config.trainer_kind == "recurrent-ppo":
-        return RecurrentPPOTrainer(config, runtime)
-    return RejaxTrainer(config, runtime)
+        return RecurrentPPOTrainer(config, runtime, env)
+    return RejaxTrainer(config, runtime, env)
