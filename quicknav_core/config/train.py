@@ -42,6 +42,12 @@ class MLPNetwork(StrictModel):
         " policy read motion, such as people walking, from two lidar scans; its carry is the"
         " frames-1 last observations, so it trains with QuickNav's PPO; needs memory_size=0",
     )  # fmt: skip
+    frame_stride: int = Field(
+        1, ge=1, le=10,
+        description="steps between the frames the MLP reads (frames > 1): 1 reads consecutive"
+        " observations (one control period apart), 3 the one 3 steps before and so on; its carry"
+        " is the (frames-1) x frame_stride last observations",
+    )  # fmt: skip
     dropout: float = Field(
         0.0, ge=0.0, lt=1.0,
         description="dropout after each hidden layer; no trainer applies it (PPO's probability ratio"
@@ -59,6 +65,12 @@ class MLPNetwork(StrictModel):
             raise ValueError(
                 f"frames={self.frames} with memory_size={self.memory_size}: an MLP reads past"
                 " observations or keeps a memory head, not both; allowed: frames=1 or memory_size=0"
+            )
+        if self.frame_stride > 1 and self.frames == 1:
+            raise ValueError(
+                f"frame_stride={self.frame_stride} with frames=1: the stride is the distance"
+                " between the frames an MLP reads, and it reads one; allowed: frames >= 2 or"
+                " frame_stride=1"
             )
         return self
 

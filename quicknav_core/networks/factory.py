@@ -25,7 +25,7 @@ def make_network(
         return MLPPolicy(
             action_dim=action_dim, hidden_sizes=tuple(config.hidden_sizes),
             memory_size=config.memory_size, dropout_rate=config.dropout,
-            frames=config.frames, obs_dim=obs_dim,
+            frames=config.frames, frame_stride=config.frame_stride, obs_dim=obs_dim,
             **std,
         )  # fmt: skip
     if isinstance(config, LSTMNetwork):

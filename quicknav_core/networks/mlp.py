@@ -18,8 +18,9 @@ class MLPPolicy(nn.Module):
     every step and fed back with the next observation; it is zero at an episode start. With
     ``memory_size == 0`` the carry is empty and this is the plain memoryless MLP, unless
     ``frames > 1``: then the MLP reads the current observation and the ``frames - 1`` before it
-    (newest first; at an episode's start the current one stands in for those not yet seen), and
-    its carry is those past observations, (B, frames - 1, obs_dim). Without a memory head the
+    (newest first; at an episode's start the current one stands in for those not yet seen),
+    ``frame_stride`` steps apart, and its carry is the past observations it will need,
+    (B, (frames - 1) * frame_stride, obs_dim). Without a memory head the
     steps of a sequence do not depend on one another's outputs, so a (T, B, obs) sequence runs in
     one call (``parallel_sequence``: training replays use it). Dropout (if
     ``dropout_rate > 0``) is active only when called with ``deterministic=False`` and a ``dropout``
@@ -33,7 +34,13 @@ class MLPPolicy(nn.Module):
     learned_log_std: bool = False
     init_log_std: float = -0.5
     frames: int = 1
+    frame_stride: int = 1  # steps between the frames read
     obs_dim: int = 0  # the carry's width when frames > 1
+
+    @property
+    def history(self) -> int:
+        """Past observations the carry holds."""
+        return (self.frames - 1) * self.frame_stride
 
     @property
     def parallel_sequence(self) -> bool:
@@ -45,24 +52,26 @@ class MLPPolicy(nn.Module):
         if self.frames > 1:
             if self.obs_dim <= 0:
                 raise ValueError("an MLP with frames > 1 needs obs_dim (make_network's obs_dim)")
-            return jnp.zeros((batch_size, self.frames - 1, self.obs_dim), jnp.float32)
+            return jnp.zeros((batch_size, self.history, self.obs_dim), jnp.float32)
         return ()
 
     def _past_frames(self, carry, obs: jax.Array, start: jax.Array) -> tuple[jax.Array, jax.Array]:
         """One step: (the observations the MLP reads, (B, frames*obs_dim); the next carry)."""
         past = reset_where(start, jnp.broadcast_to(obs[:, None], carry.shape), carry)
-        seen = jnp.concatenate([obs[:, None], past], axis=1)  # (B, frames, D), newest first
-        return seen.reshape(obs.shape[0], -1), seen[:, :-1]
+        seen = jnp.concatenate([obs[:, None], past], axis=1)  # (B, history + 1, D), newest first
+        return seen[:, :: self.frame_stride].reshape(obs.shape[0], -1), seen[:, :-1]
 
     def _sequence_frames(self, carry, obs: jax.Array, start: jax.Array) -> jax.Array:
-        """A (T, B, D) sequence from ``carry``: (T, B, frames*D), as step by step. The frame j
-        steps back at t is obs[t] where an episode starts at t, else the frame j-1 back at t-1."""
+        """A (T, B, D) sequence from ``carry``: (T, B, frames*D), as step by step. The
+        observation j steps back at t is obs[t] where an episode starts at t, else the one j-1
+        steps back at t-1; every ``frame_stride``-th is read."""
         frames, newer = [obs], obs
         at_start = start[..., None]
-        for j in range(1, self.frames):
+        for j in range(1, self.history + 1):
             shifted = jnp.concatenate([carry[None, :, j - 1], newer[:-1]], axis=0)
             newer = jnp.where(at_start, obs, shifted)
-            frames.append(newer)
+            if j % self.frame_stride == 0:
+                frames.append(newer)
         return jnp.concatenate(frames, axis=-1)
 
     @nn.compact

@@ -13,6 +13,7 @@ NETWORKS = {
     "mlp": MLPNetwork(hidden_sizes=(16,)),
     "mlp-memory": MLPNetwork(hidden_sizes=(16,), memory_size=8),
     "mlp-frames": MLPNetwork(hidden_sizes=(16,), frames=3),
+    "mlp-strided": MLPNetwork(hidden_sizes=(16,), frames=3, frame_stride=2),
     "lstm": LSTMNetwork(num_layers=2, hidden_size=6),
     "gtrxl": GTrXLNetwork(embed_size=8, num_heads=2, head_size=4, num_layers=2, memory_length=5),
 }
@@ -153,7 +154,26 @@ def test_mlp_frames__reads_exactly_the_last_frames_observations():
     np.testing.assert_allclose(np.asarray(out.mean), mean_a[1], rtol=1e-5, atol=1e-6)
 
 
-@pytest.mark.parametrize("name", ["mlp", "mlp-frames"])
+def test_mlp_frames__a_stride_reads_every_other_observation():
+    """frames=3, frame_stride=2: the output at t reads obs[t], obs[t-2] and obs[t-4] (the
+    episode's first observation standing in for those before it), nothing between them."""
+    net, params = _init("mlp-strided", batch=1)
+    assert net.initial_carry(2).shape == (2, 4, OBS)
+    t_len = 9
+    obs = jax.random.normal(jax.random.PRNGKey(5), (t_len, 1, OBS))
+    start = jnp.zeros((t_len, 1), bool).at[0].set(True)
+    mean_a, _ = _run(net, params, obs, start)
+    mean_b, _ = _run(net, params, obs.at[2].add(4.0), start)
+    changed = [t for t in range(t_len) if not np.allclose(mean_a[t], mean_b[t], atol=1e-6)]
+    assert changed == [2, 4, 6], changed
+    plain = make_network(MLPNetwork(hidden_sizes=(16,)))
+    for t, read in ((1, (1, 0, 0)), (3, (3, 1, 0)), (7, (7, 5, 3))):
+        x = jnp.concatenate([obs[i] for i in read], axis=-1)
+        out = plain.apply(params, (), x, jnp.zeros((1,), bool))[1]
+        np.testing.assert_allclose(np.asarray(out.mean), mean_a[t], rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("name", ["mlp", "mlp-frames", "mlp-strided"])
 def test_mlp__whole_sequence_at_once_equals_step_by_step(name):
     """A memoryless MLP (past frames or not) replays a (T, B) sequence in one call: the same
     numbers as step by step from any carry, episode starts anywhere."""

@@ -199,6 +199,7 @@ def test_same_seed_same_metrics(tmp_path):
         (["--set", "network.frames=2", "--set", "network.memory_size=8"],
          "frames=2 with memory_size=8: an MLP reads past observations or keeps a memory head"),
         (["--set", "network.frames=9"], "network.frames: Input should be less than or equal to 8"),
+        (["--set", "network.frame_stride=3"], "frame_stride=3 with frames=1: the stride is the distance"),
         (["--set", "num_envs=0"], "num_envs"),
     ],
 )
