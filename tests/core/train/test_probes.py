@@ -69,3 +69,12 @@ def test_probe__cue_needs_memory():
     measures what the carry keeps."""
     _, after = train(Cue(), MLP, {**PPO, "implementation": "quicknav"}, 64, 32_768)
     assert abs(cue_return(after)) < 0.1
+
+
+def test_trainer__given_its_own_env_refuses_a_curriculum_naming_it():
+    """A curriculum's pool is drawn from config.env's rooms: a trainer on another env cannot
+    honour it, and says so instead of training without it."""
+    cfg = TrainConfig.model_validate({"network": MLP, "algorithm": PPO, "num_envs": 8,
+                                      "total_steps": 1024, "curriculum": {"enabled": True}})  # fmt: skip
+    with pytest.raises(ValueError, match=r"curriculum\.enabled"):
+        make_trainer(cfg, env=(Target(), Target().default_params))
