@@ -24,6 +24,10 @@ KINDS = {
     # the building preset's network: an MLP reading the observation before this one too
     "mlp-frames": ("paper-mlp", {"num_envs": 16, "algorithm.num_steps": 16, "total_steps": 512,
                                  "network.memory_size": 0, "network.frames": 2}),
+    # frames two steps apart: state_0 holds the last two observations
+    "mlp-strided": ("paper-mlp", {"num_envs": 16, "algorithm.num_steps": 16, "total_steps": 512,
+                                  "network.memory_size": 0, "network.frames": 2,
+                                  "network.frame_stride": 2}),
     "lstm": ("paper-lstm", {"num_envs": 16, "algorithm.num_steps": 16, "total_steps": 512}),
     "gtrxl": ("paper-gtrxl", {"num_envs": 16, "algorithm.num_steps": 16, "total_steps": 512}),
 }
@@ -90,7 +94,7 @@ def test_export__dynamic_batch_and_the_manifest_a_robot_reads(exported):
     assert doc["provenance"]["job_id"] == "test"
     assert doc["provenance"]["env_steps"] > 0 or kind != "ppo-mlp"  # the trained run says how far
     assert doc["env"] == config.env.model_dump(mode="json")
-    assert doc["recurrent"] == (kind in ("mlp-memory", "mlp-frames", "lstm", "gtrxl"))
+    assert doc["recurrent"] == (kind in ("mlp-memory", "mlp-frames", "mlp-strided", "lstm", "gtrxl"))
     # any batch size runs; a state starts from its documented initial value
     for batch in (1, 7):
         rng = np.random.default_rng(batch)

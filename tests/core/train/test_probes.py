@@ -56,6 +56,7 @@ def test_every_trainer__learns_to_act_on_what_it_sees(name, algorithm, num_envs,
                    "memory_length": 4}),
         ("mlp-memory", {**MLP, "memory_size": 8}),
         ("mlp-two-frames", {**MLP, "frames": 2}),
+        ("mlp-two-frames-stride-2", {**MLP, "frames": 2, "frame_stride": 2}),
     ]
 ])  # fmt: skip
 def test_recurrent_ppo__learns_to_remember_what_it_saw(name, network):
