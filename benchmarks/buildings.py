@@ -3,7 +3,9 @@
 Rows: the `building` preset's learned local planner, `paper-ppo` (the paper's agent, as a user
 would pick it), the oracle's plan followed by pure pursuit (`--policy oracle`: blind to what the
 map does not show) and the same plan followed by a dynamic window approach on the lidar
-(`--policy dwa`, as ROS 2 Navigation's DWB controller). Columns: held-out generated floor plans
+(`--policy dwa`, as ROS 2 Navigation's DWB controller), and the building preset's policy through
+the safety layer (`building+shield`: `quicknav eval --shield`, as a collision monitor between a
+controller and the wheels; the same training). Columns: held-out generated floor plans
 (the building preset's test bank), the maps drawn for QuickNav that the policy never trained on
 (`examples/maps`: the office, the warehouse) and real SLAM maps that robots built with their lidar
 (`examples/maps/slam`: Nav2's depot and warehouse, AWS RoboMaker's small warehouse; their
@@ -39,6 +41,7 @@ from quicknav_core.bench.machine import machine_info, machine_line  # noqa: E402
 
 PRESETS = ("building", "paper-ppo")
 BASELINES = ("oracle", "dwa")
+SHIELDED = ("building+shield",)  # the building training, evaluated with --shield
 # where: the flags that put a policy there (its own env otherwise)
 WHERE = {
     "floor plans": [],
@@ -94,10 +97,10 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "buildings.json")
     ap.add_argument("--where", action="append", choices=list(WHERE),
                     help="evaluate only these columns (repeat it); the results file keeps the rest")
-    ap.add_argument("--rows", action="append", choices=[*PRESETS, *BASELINES],
+    ap.add_argument("--rows", action="append", choices=[*PRESETS, *BASELINES, *SHIELDED],
                     help="evaluate only these rows (repeat it); the results file keeps the rest")
     args = ap.parse_args()
-    wheres, wanted = args.where or list(WHERE), args.rows or [*PRESETS, *BASELINES]
+    wheres, wanted = args.where or list(WHERE), args.rows or [*PRESETS, *BASELINES, *SHIELDED]
     env_file = args.runs / "building-env.json"
     rows: dict[str, dict] = {}
     for preset in PRESETS:
@@ -105,6 +108,8 @@ def main() -> None:
         train_s = None
         if preset in wanted and (args.retrain or not trained(run_dir, preset)):
             train_s = run(["uv", "run", "quicknav", "train", "--preset", preset, "--out", str(run_dir)])
+        if preset == "building" and "building+shield" in wanted and not trained(run_dir, preset):
+            sys.exit(f"{run_dir} holds no building training: run with --rows building first")
         if preset == "building":  # the baselines drive in its env (a training writes it first)
             if not (run_dir / "config.json").exists():
                 sys.exit(f"{run_dir} holds no building training: run with --rows building first")
@@ -113,6 +118,9 @@ def main() -> None:
         if preset in wanted:
             rows[preset] = {"train_s": train_s and round(train_s), "who": [str(run_dir)],
                             "floor plans": [] if preset == "building" else FLOORPLANS}  # fmt: skip
+    if "building+shield" in wanted:
+        rows["building+shield"] = {"train_s": None, "who": [str(args.runs / "building"), "--shield"],
+                                   "floor plans": []}  # fmt: skip
     for baseline in (b for b in BASELINES if b in wanted):  # in the building preset's env
         rows[baseline] = {"train_s": None, "who": ["--policy", baseline, "--config", str(env_file)],
                           "floor plans": []}  # fmt: skip
@@ -138,7 +146,7 @@ def main() -> None:
                 r = evaluate(row["who"], [*base, *sets, *RULES], out, args.episodes, args.fresh)
                 results[name]["cells"][key] = r
                 print(f"{name} on {key}: {cell(r)} ({r['seconds']} s)", flush=True)
-    names = [n for n in (*PRESETS, *BASELINES) if n in results]
+    names = [n for n in (*PRESETS, *BASELINES, *SHIELDED) if n in results]
     lines = ["| map | obstacles | " + " | ".join(names) + " |", "|---" * (len(names) + 2) + "|"]
     for w in WHERE:
         for o in OBSTACLES:

@@ -38,6 +38,7 @@ def run_env(source: str):
 def eval_request(
     run: Path | None, policy: str | None, episodes: int, seed: int, deterministic: bool,
     split: str, config: Path | None, overrides: list[str] | None, robustness: bool = False,
+    shield: bool = False,
 ) -> dict[str, Any]:  # fmt: skip
     """The eval request the flags describe (what the SDK would send, with a job for the run)."""
     if (run is None) == (policy is None):
@@ -49,6 +50,8 @@ def eval_request(
                                "deterministic": deterministic, "env": env}  # fmt: skip
     if robustness:
         request["robustness"] = True
+    if shield:
+        request["shield"] = True
     if run is not None:
         request["run"] = str(run)
     else:
@@ -105,6 +108,12 @@ def eval_cmd(
                      " beam dropout, range bias, action latency and wheel asymmetry: success and"
                      " SPL per level (eval.json, robustness.png)."),
     ] = False,
+    shield: Annotated[
+        bool,
+        typer.Option("--shield", help="Put the safety layer between the policy and the wheels: a"
+                     " command that would bring the robot within 1 cm of a lidar return is"
+                     " slowed, down to turning in place (agent '<policy>+shield')."),
+    ] = False,
     on_map: Annotated[
         Path | None,
         typer.Option("--map", help="Evaluate on this map (a map_server .yaml): the grid follows"
@@ -120,7 +129,7 @@ def eval_cmd(
     if split not in ("test", "train"):
         fail(f"--split {split!r}: allowed values are test and train")
     request = eval_request(run, policy, episodes, seed, deterministic, split, config, set_,
-                           robustness)  # fmt: skip
+                           robustness, shield)  # fmt: skip
     if on_map is not None:  # the map over --config's env, and --set over both but for the grid:
         # --set grid_size / room_size give the cells the map is laid at (map_overrides read them),
         # the map gives how many

@@ -234,6 +234,12 @@ def jobs_submit(
         typer.Option("--robustness", help="eval: also run the episodes at fixed levels of lidar"
                      " noise, dropout, bias, latency and wheel asymmetry (robustness.png)."),
     ] = False,
+    shield: Annotated[
+        bool,
+        typer.Option("--shield", help="eval: put the safety layer between the policy and the"
+                     " wheels (a command that would bring the robot within 1 cm of a lidar return"
+                     " is slowed, down to turning in place)."),
+    ] = False,
     follow: Annotated[
         bool, typer.Option("--follow", help="Wait with a progress bar until the job finishes.")
     ] = False,
@@ -256,6 +262,8 @@ def jobs_submit(
         fail("--total-steps is for train and sweep jobs")
     if kind != "eval" and robustness:
         fail("--robustness is for eval jobs")
+    if kind != "eval" and shield:
+        fail("--shield is for eval jobs")
     if stochastic:
         warn("--stochastic is deprecated: write --no-deterministic (the API's field is"
              " `deterministic`)")  # fmt: skip
@@ -287,7 +295,7 @@ def jobs_submit(
         else:
             submitted = client.evaluate(job=job, policy=policy, episodes=episodes, seed=seed,
                                         env=env_sets(set_), split=split, deterministic=deterministic,
-                                        robustness=robustness)  # fmt: skip
+                                        robustness=robustness, shield=shield)  # fmt: skip
         console.print(f"submitted {submitted.kind} job {submitted.id} ({submitted.status})",
                       highlight=False)  # fmt: skip
         if follow:

@@ -26,6 +26,10 @@ follows the new plan's waypoints. Marks last until the next goal; when the goal 
 with them, they are dropped and the map's own plan stays (``blocked_cells`` counts them,
 ``replans`` the re-plans made).
 
+Safety layer (``shield=True``, ``quicknav_client.shield``): the policy's command is slowed where
+its next pose would bring the robot within 1 cm of a scan return, down to turning in place, as
+ROS 2 Navigation's collision monitor does; ``quicknav eval --shield`` measures the same rule.
+
 Install: ``pip install 'quicknav-client[navigate]'`` (onnxruntime and SciPy).
 """
 
@@ -38,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from quicknav_client.policy import OnnxPolicy, scan_arrays
+from quicknav_client.shield import scan_in_robot_frame, shield_command
 
 f32 = np.float32
 MAP_FILE = "map.npz"
@@ -195,11 +200,12 @@ class Navigator:
     with every scan, once per control period. Poses and goals are in the map frame (the YAML's
     ``origin`` frame, as tf2 and RViz give them); a pose off the map is an error, never an action.
 
-    ``replan_after_s`` (None: never) and ``mark_range_m``: re-planning when blocked (the module's
-    doc)."""
+    ``replan_after_s`` (None: never) and ``mark_range_m``: re-planning when blocked; ``shield``:
+    the safety layer (the module's doc)."""
 
     def __init__(self, policy: OnnxPolicy, walls: np.ndarray, frame: dict[str, Any],
-                 replan_after_s: float | None = 5.0, mark_range_m: float = 3.0):  # fmt: skip
+                 replan_after_s: float | None = 5.0, mark_range_m: float = 3.0,
+                 shield: bool = False):  # fmt: skip
         m = policy.manifest
         env = m["env"]
         if not env.get("observe_plan"):
@@ -222,6 +228,8 @@ class Navigator:
         self.blocked = np.zeros_like(self.walls)
         self.replans = 0
         self._best_left, self._stalled = math.inf, 0
+        self.shield = bool(shield)
+        self.shielded = 0  # act calls whose command the safety layer changed
 
     @property
     def blocked_cells(self) -> int:
@@ -230,7 +238,7 @@ class Navigator:
 
     @classmethod
     def load(cls, folder: str | Path, replan_after_s: float | None = 5.0,
-             mark_range_m: float = 3.0) -> Navigator:  # fmt: skip
+             mark_range_m: float = 3.0, shield: bool = False) -> Navigator:  # fmt: skip
         """The policy and the map ``quicknav export RUN --map MAP --out FOLDER`` wrote."""
         folder = Path(folder)
         policy = OnnxPolicy.load(folder)
@@ -240,7 +248,7 @@ class Navigator:
                              " --map YOUR_MAP.yaml --out FOLDER` to add one")  # fmt: skip
         with np.load(folder / frame.get("file", MAP_FILE)) as data:
             walls = np.asarray(data["walls"], bool)
-        return cls(policy, walls, frame, replan_after_s, mark_range_m)
+        return cls(policy, walls, frame, replan_after_s, mark_range_m, shield)
 
     def to_grid(self, x: float, y: float) -> tuple[float, float]:
         """A map-frame point in the planner's grid frame."""
@@ -285,7 +293,22 @@ class Navigator:
                 if self.replan(scan, pose):
                     self._best_left = self.planner.path_length_m(gx, gy)
                     obs = self.observation(scan, pose)
-        return self.policy.act_on(obs)
+        left, right = self.policy.act_on(obs)
+        if not self.shield:
+            return left, right
+        return self.shielded_command(scan, left, right)
+
+    def shielded_command(self, scan: Any, left: float, right: float) -> tuple[float, float]:
+        """Wheel speeds (m/s) through the safety layer (``quicknav_client.shield``) for this scan."""
+        env = self.policy.manifest["env"]
+        top = float(env["max_wheel_speed"])
+        angles = np.asarray(self.policy.manifest["lidar"]["beam_angles_rad"], np.float64)
+        points = scan_in_robot_frame(*scan_arrays(scan, angles))
+        let = shield_command((left / top, right / top), points, radius=float(env["robot_radius"]),
+                             max_wheel_speed=top, wheel_base=float(env["wheel_base"]),
+                             dt=self.period_s)  # fmt: skip
+        self.shielded += let != (left / top, right / top)
+        return let[0] * top, let[1] * top
 
     def replan(self, scan: Any, pose: Any) -> bool:
         """Mark the scan's returns within ``mark_range_m`` as blocked (never the robot's or the

@@ -53,6 +53,12 @@ class EvalConfig(StrictModel):
         " latency, wheel asymmetry; eval.robustness.LEVELS): success and SPL per level in"
         " eval.json and robustness.png",
     )
+    shield: bool = Field(
+        False,
+        description="put the safety layer (eval.shield) between the policy and the wheels: a"
+        " command that would bring the robot within 1 cm of a lidar return is slowed, down to"
+        " turning in place",
+    )
 
     @model_validator(mode="after")
     def _check_source(self) -> EvalConfig:

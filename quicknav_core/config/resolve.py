@@ -134,6 +134,12 @@ class EvalFields(StrictModel):
         " action latency and wheel asymmetry: success and SPL per level in eval.json's"
         " 'robustness', drawn in robustness.png",
     )
+    shield: Flag = Field(
+        False,
+        description="put the safety layer between the policy and the wheels: a command that would"
+        " bring the robot within 1 cm of a lidar return is slowed, down to turning in place"
+        " (agent '<policy>+shield')",
+    )
     stochastic: Flag | None = Field(
         None, deprecated=True,
         description="deprecated: the opposite of 'deterministic'; send 'deterministic' instead",
@@ -426,4 +432,5 @@ def resolve_eval(
         split=req.split,
         deterministic=req.acts_deterministically,
         robustness=req.robustness,
+        shield=req.shield,
     )

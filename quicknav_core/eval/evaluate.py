@@ -20,6 +20,7 @@ from quicknav_core.eval.episodes import Episodes, EvalStopped, replay_data, run_
 from quicknav_core.eval.pictures import draw_all, draw_difficulty, draw_gif, draw_trajectories
 from quicknav_core.eval.robustness import robustness_levels, run_robustness
 from quicknav_core.eval.scripted import baseline_agent
+from quicknav_core.eval.shield import ShieldedAgent
 from quicknav_core.eval.statistics import (
     PATH_BIN_EDGES,
     by_path_length,
@@ -102,12 +103,14 @@ def make_agent(cfg: EvalConfig, run_dir: Path | str | None = None, runtime: Runt
     folder) in ``cfg.env`` or else the run's own env."""
     if cfg.policy != "trained":
         env = cfg.env or EnvConfig()
-        return baseline_agent(cfg.policy, env), env
-    where = run_dir if run_dir is not None else cfg.source
-    if where is None:
-        raise ValueError("policy='trained' needs a source: the run folder of the trained policy")
-    agent, run_env, _ = agent_from_run(Path(where), runtime)
-    return agent, cfg.env or run_env
+        agent = baseline_agent(cfg.policy, env)
+    else:
+        where = run_dir if run_dir is not None else cfg.source
+        if where is None:
+            raise ValueError("policy='trained' needs a source: the run folder of the trained policy")
+        agent, run_env, _ = agent_from_run(Path(where), runtime)
+        env = cfg.env or run_env
+    return (ShieldedAgent(agent, env) if cfg.shield else agent), env
 
 
 def run_eval(

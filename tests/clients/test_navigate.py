@@ -251,3 +251,38 @@ def test_navigator__replan_refusals_and_a_walled_in_robot_keeps_the_map_plan():
     assert not nav.replan(ring, (1.25, 5.25, 0.0))
     assert nav.blocked_cells == 0 and nav.replans == 0
     np.testing.assert_array_equal(nav.planner.field, before)
+
+
+def test_navigator__the_safety_layer_stops_a_plan_follower_short_of_a_door_the_map_does_not_show():
+    """The plan follower presses against the closed door every step without the safety layer; with
+    ``shield=True`` it stops short of it and never touches it, turning in place at most (the
+    NumPy twin counts the contacts; no re-planning, so the door holds it either way)."""
+    from quicknav_core.env.constants import HIT_NONE
+    from quicknav_core.env.numpy_env import cast_lidar_np
+
+    cfg = EnvConfig(**{**PLAN, "lidar_beams": 32, "lidar_max_range": 4.0, "max_steps": 300})
+    walls, world = _ring_and_wall()
+    frame = {"cell_m": cfg.cell_size, "grid_corner_in_map": [0.0, 0.0]}
+    with pytest.raises(ValueError, match="allowed"):
+        Navigator(Pursuit(cfg), walls, frame, mark_range_m=0, shield=True)
+    contacts = {}
+    for shield in (False, True):
+        twin = QuickNavNumpyEnv(cfg, split="test")
+        nav = Navigator(Pursuit(cfg), walls, frame, replan_after_s=None, shield=shield)
+        angles = np.asarray(nav.policy.manifest["lidar"]["beam_angles_rad"], np.float32)
+        start, goal = (2.0, 2.0), (10.75, 5.25)  # in the top corridor, the door ahead
+        twin.load(world, np.asarray(start, np.float32), 0.0, np.asarray(goal, np.float32))
+        nav.set_goal(goal)
+        touched = 0
+        for _ in range(200):
+            s = twin.snapshot()
+            ranges, hits = cast_lidar_np(s["pos"], s["theta"], np.full(2, -1e4, np.float32), s["walls"],
+                                         angles, cfg.cell_size, cfg.lidar_max_range, cfg.goal_radius)  # fmt: skip
+            pose = (float(s["pos"][0]), float(s["pos"][1]), float(s["theta"]))
+            left, right = nav.act(np.where(hits == HIT_NONE, np.inf, ranges), pose)
+            *_, info = twin.step(np.array([left, right]) / cfg.max_wheel_speed)
+            touched += bool(info["collision"])
+        contacts[shield] = (touched, nav.shielded, float(twin.snapshot()["pos"][0]))
+    assert contacts[False][0] >= 100 and contacts[False][1] == 0, contacts  # pressed on the door
+    assert contacts[True][0] == 0 and contacts[True][1] >= 100, contacts  # stopped every step
+    assert 4.5 < contacts[True][2] < 6.0, contacts  # at the door, not turned back

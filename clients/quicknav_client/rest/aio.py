@@ -253,15 +253,17 @@ class AsyncQuickNavClient:
         stochastic: bool | None = None,
         idempotency_key: str | None = None,
         robustness: bool = False,
+        shield: bool = False,
     ) -> AsyncJob:
         """Submit an eval job: a train job's checkpoint, or a ``random``/``oracle`` baseline.
 
         ``stochastic`` is the deprecated opposite of ``deterministic`` (the API's name);
         ``robustness`` also runs the episodes at each fixed perturbation level (eval.json's
-        ``robustness`` rows, robustness.png).
+        ``robustness`` rows, robustness.png); ``shield`` puts the safety layer between the policy
+        and the wheels (agent ``<policy>+shield``).
         """
         body = core.eval_body(job, policy, episodes, seed, env, split, deterministic, stochastic,
-                              robustness)  # fmt: skip
+                              robustness, shield)  # fmt: skip
         return await self._submit("/jobs/eval", body, idempotency_key)
 
     async def jobs(

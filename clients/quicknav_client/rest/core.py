@@ -230,6 +230,7 @@ def eval_body(
     deterministic: bool = True,
     stochastic: bool | None = None,
     robustness: bool = False,
+    shield: bool = False,
 ) -> dict:
     """The POST /jobs/eval body (the server checks that exactly one of job and policy is given)."""
     if stochastic is not None:
@@ -246,6 +247,8 @@ def eval_body(
         body["env"] = dict(env)
     if robustness:
         body["robustness"] = True
+    if shield:
+        body["shield"] = True
     return body
 
 

@@ -240,16 +240,18 @@ class QuickNavClient:
         stochastic: bool | None = None,
         idempotency_key: str | None = None,
         robustness: bool = False,
+        shield: bool = False,
     ) -> Job:
         """Submit an eval job: a train job's checkpoint, or a ``random``/``oracle`` baseline.
 
         ``env`` sets fields of the env the episodes run in (the trained policy's own, or the
         default env for a baseline); ``stochastic`` is the deprecated opposite of deterministic;
         ``robustness`` also runs the episodes at each fixed perturbation level (eval.json's
-        ``robustness`` rows, robustness.png).
+        ``robustness`` rows, robustness.png); ``shield`` puts the safety layer between the policy
+        and the wheels (agent ``<policy>+shield``).
         """
         body = core.eval_body(job, policy, episodes, seed, env, split, deterministic, stochastic,
-                              robustness)  # fmt: skip
+                              robustness, shield)  # fmt: skip
         return self._submit("/jobs/eval", body, idempotency_key)
 
     def jobs(
