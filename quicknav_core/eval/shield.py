@@ -1,15 +1,18 @@
 """A safety layer between any policy and the wheels, as ROS 2 Navigation's collision monitor sits
 between its controller and the motors: it reads the current scan and slows a command that would
-bring the robot's disc closer than ``MARGIN_M`` to a return.
+bring the robot's disc within ``MARGIN_M`` of a return.
 
 The command's forward part is scaled by the first of ``SCALES`` whose next pose (one control
 period of the robot's own differential drive) keeps the disc ``radius + MARGIN_M`` from every
 wall return, or at least no closer than it is now; its turning part is kept. At scale 0 the
 robot turns in place, which a disc can always do, so the layer never leaves the robot without a
 command. People in QuickNav turn back where they would step into the robot, and the scan shows
-them where the next move is checked against them, so a shielded robot does not walk into one it
-sees. Wheel-speed errors and latency (``env.perturbation``) are not modelled: the layer assumes
-the wheels do what they are told.
+them where the robot's next move is checked against them, so a shielded robot does not walk into
+one it sees. It does not see a wall corner between two beams, nor what the simulator's goal disc
+hides behind it (beams that hit the goal are not obstacles). Wheel-speed errors and latency
+(``env.perturbation``) are not modelled: the layer assumes the wheels do what they are told. A
+policy that keeps pushing into a wall it sees stays there, turning in place: a time-out instead
+of a collision.
 
 ``shield_command`` is the JAX version (evaluations with ``shield=True``); ``quicknav_client.
 shield`` is the NumPy one a robot runs (``Navigator(shield=True)``), held equal to it by

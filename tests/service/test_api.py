@@ -102,7 +102,7 @@ def test_train_job__sse_artifacts_metrics_then_eval_job(live):
 
         # split and env overrides reach the worker through the stored config (split once did not)
         body = {"job_id": job["id"], "episodes": 8, "split": "train", "env": {"max_steps": 30},
-                "robustness": True}
+                "robustness": True, "shield": True}
         ev = httpx.post(f"{live.url}/jobs/eval", json=body)
         assert ev.status_code == 202, ev.text
         assert ev.json()["config"]["split"] == "train" and ev.json()["config"]["env"]["max_steps"] == 30
@@ -120,6 +120,8 @@ def test_train_job__sse_artifacts_metrics_then_eval_job(live):
         from quicknav_core.eval.robustness import LEVELS
 
         assert ev.json()["config"]["robustness"] is True
+        # and the safety layer: the policy's commands went through it
+        assert ev.json()["config"]["shield"] is True and measured["agent"].endswith("+shield")
         assert [r["label"] for r in measured["robustness"]] == [lv.label for lv in LEVELS]
         assert {r["episodes"] for r in measured["robustness"]} == {8}
         assert measured["eval_config"]["split"] == "train" and measured["env_config"]["max_steps"] == 30
