@@ -7,10 +7,11 @@ are then driven by the SDK's `Navigator` (onnxruntime, SciPy's Dijkstra on `map.
 in the NumPy twin: the twin moves the robot and casts a lidar that sees the walls only, as a
 real scanner does; the Navigator gets the scan, the pose in the map frame and the goal. Without
 unmapped obstacles. Prints both success rates, how many episodes end alike, and writes them into
-benchmarks/results/navigator_parity.json (one entry per map).
+benchmarks/results/navigator_parity.json (one entry per map). `--shield`: both sides through the
+safety layer (`quicknav eval --shield`, `Navigator(shield=True)`; the entry's key gains " +shield").
 
     uv run python benchmarks/navigator_parity.py --run runs/buildings/building \
-        [--map examples/maps/office.yaml] [--episodes 100]
+        [--map examples/maps/office.yaml] [--episodes 100] [--shield]
 
 QuickNav's target: the two success rates within 2 points.
 """
@@ -53,6 +54,8 @@ def drive(nav, twin, cfg, walls, start, theta, goal) -> dict:
         mine = nav.observation(scan, pose)
         worst = max(worst, float(np.abs(mine - obs).max()))
         left, right = nav.policy.act_on(mine)
+        if nav.shield:  # the safety layer on the scan the Navigator was given
+            left, right = nav.shielded_command(scan, left, right)
         obs, _, terminated, truncated, info = twin.step(np.array([left, right]) / cfg.max_wheel_speed)
         done, steps = terminated or truncated, steps + 1
     end = twin.snapshot()["pos"]
@@ -69,6 +72,7 @@ def main() -> None:
     ap.add_argument("--map", default="examples/maps/office.yaml")
     ap.add_argument("--episodes", type=int, default=100)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--shield", action="store_true", help="both sides through the safety layer")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "navigator_parity.json")
     args = ap.parse_args()
 
@@ -83,12 +87,15 @@ def main() -> None:
     from quicknav_core.eval.agents import agent_from_run
     from quicknav_core.eval.evaluate import evaluate
     from quicknav_core.eval.map_fit import fit_map
+    from quicknav_core.eval.shield import ShieldedAgent
     from quicknav_core.runtime import Runtime
 
     runtime = Runtime()
     agent, env, _ = agent_from_run(args.run, runtime)
     fit = fit_map(env, args.map)
     cfg = EnvConfig.model_validate({**env.model_dump(), **fit.env_overrides(args.map), "obstacles": None})
+    if args.shield:
+        agent = ShieldedAgent(agent, cfg)
     t0 = time.perf_counter()
     result, ep = evaluate(cfg, agent, EvalConfig(episodes=args.episodes, seed=args.seed, pictures=False,
                                                  gif_episodes=0), runtime=runtime)  # fmt: skip
@@ -103,7 +110,7 @@ def main() -> None:
         robot = Path(tmp) / "robot"
         subprocess.run(["uv", "run", "quicknav", "export", str(args.run), "--map", args.map, "--out",
                         str(robot)], cwd=ROOT, check=True, stdout=subprocess.DEVNULL)  # fmt: skip
-        nav = Navigator.load(robot)
+        nav = Navigator.load(robot, shield=args.shield)
         walls = nav.planner.walls
         assert walls.shape == ep.walls.shape[1:] and all((w == walls).all() for w in ep.walls), \
             "the exported map is not the room the JAX env drove"  # fmt: skip
@@ -122,13 +129,15 @@ def main() -> None:
         "sdk_in_twin": {"success_rate": float(sdk_ok.mean()), "collisions_per_episode":
                         float(np.mean([r["collisions"] for r in rows])), "seconds": round(sdk_s, 1),
                         "steps": int(sum(r["steps"] for r in rows)),
-                        "max_obs_error": max(r["max_obs_error"] for r in rows)},
-        "same_outcome": int((jax_ok == sdk_ok).sum()),
+                        "max_obs_error": max(r["max_obs_error"] for r in rows),
+                        "shielded_steps": nav.shielded if args.shield else None},
+        "shield": args.shield, "same_outcome": int((jax_ok == sdk_ok).sum()),
         "difference_points": round(100 * abs(float(jax_ok.mean()) - float(sdk_ok.mean())), 1),
     }  # fmt: skip
     # one entry per map: a run on another map keeps the others
     kept = json.loads(args.out.read_text()).get("maps", {}) if args.out.exists() else {}
-    args.out.write_text(json.dumps({"maps": {**kept, args.map: doc}}, indent=1))
+    key = args.map + (" +shield" if args.shield else "")
+    args.out.write_text(json.dumps({"maps": {**kept, key: doc}}, indent=1))
     print(f"{args.map}, {args.episodes} episodes (seed {args.seed}), grid {cfg.grid_size} at"
           f" {cfg.cell_size:g} m, {cfg.max_steps}-step limit; {machine_line()}")
     print(f"  JAX eval:                     {100 * jax_ok.mean():5.1f} % success")
