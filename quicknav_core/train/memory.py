@@ -5,7 +5,7 @@ The parts that grow with the config: the replay buffer of SAC/TD3 (``buffer_size
 two observations, an action, a reward and a done flag), the room banks, the env batch, PPO's
 rollout, the networks, and, for an evaluation, every episode's trajectory and its planner's fields.
 Factors were measured on this project's CPU VM (peak RSS of a process that trains as a worker
-does, ``quicknav_core.bench.memory``): 870-1,190 MB for the interpreter, JAX and the compiled
+does, ``quicknav_core.bench.memory``): 915-1,190 MB for the interpreter, JAX and the compiled
 programs depending on the trainer and network, and about 2.7 bytes of peak for each byte of replay buffer
 (the buffer lives once in the train state, once more while a compiled unit writes its output, and
 once more while a checkpoint is serialised).
@@ -33,9 +33,11 @@ EVAL_RUNTIME_BYTES = 780 * MB
 # README has the table. The same case measures up to 6 % apart from run to run (lstm-1024: 1,015
 # and 956 MB; sac-100k: 1,185-1,235 MB), so each sits near the middle of its measurements. GTrXL
 # at 2,048 envs measured 1,336 MB (AMD EPYC, recorded), 1,244 MB (a CI run on the same kind) and
-# 1,377 MB (three runs on an Intel Xeon VM): its constant sits in the middle of that range.
+# 1,377 MB (three runs on an Intel Xeon VM): its constant sits in the middle of that range. PPO
+# with the MLP peaks higher on the Intel Xeon VM than on the AMD EPYC one (2,048 envs: 1,012 and
+# 1,047 MB against 937; 256 envs: 933 against 872), so its constant sits between the two.
 TRAIN_RUNTIME_BYTES = {
-    "rejax-ppo": 870 * MB,
+    "rejax-ppo": 915 * MB,
     "rejax-sac": 1100 * MB,
     "rejax-td3": 980 * MB,
     "recurrent-mlp": 940 * MB,
