@@ -398,11 +398,13 @@ function evalsSection(job, sec) {
     "aria-label": "episodes", style: "width:90px" });
   // also run the episodes at each fixed level of lidar noise, dropout, bias, latency, wheel asymmetry
   const robust = h("input", { id: "eval-robustness", type: "checkbox" });
+  // drive through the safety layer (the collision monitor a robot runs between policy and motors)
+  const shield = h("input", { id: "eval-shield", type: "checkbox" });
   const run = h("button", { class: "primary", id: "run-eval", onclick: async () => {
     run.disabled = true;
     try {
       const ev = await api("/jobs/eval", { method: "POST",
-        body: { job_id: job.id, episodes: Number(episodes.value), split: "test", robustness: robust.checked } });
+        body: { job_id: job.id, episodes: Number(episodes.value), split: "test", robustness: robust.checked, shield: shield.checked } });
       location.href = `/ui/jobs/${ev.id}`;
     } catch (e) { run.disabled = false; showError(sec, e); }
   } }, "Evaluate on held-out rooms");
@@ -412,7 +414,9 @@ function evalsSection(job, sec) {
   return async () => {
     fill(controls, job.status === "succeeded" ? [run, episodes, h("span", { class: "muted" }, "episodes, fixed seeds"),
       h("label", { title: "success and SPL at fixed levels of lidar noise, beam dropout, range bias, latency and wheel asymmetry (robustness.png)" },
-        robust, " and at each sensor perturbation")]
+        robust, " and at each sensor perturbation"),
+      h("label", { title: "each command goes through the safety layer: its forward part is scaled down (0.5, 0.25, 0) where the next control period would bring the robot within 1 cm of a lidar return" },
+        shield, " through the safety layer")]
       : h("span", { class: "muted" }, "An evaluation can run once the job has succeeded."));
     const evals = await evalsOf(job);
     table.dataset.pending = String(evals.filter((e) => !finished(e)).length);
@@ -423,7 +427,8 @@ function evalsSection(job, sec) {
       const m = (e.result && e.result.metrics) || {};
       return h("tr", { dataset: { id: e.id, status: e.status } },
         h("td", { class: "mono" }, h("a", { href: `/ui/jobs/${e.id}` }, short(e.id))),
-        h("td", {}, badge(e.status)), h("td", {}, e.config.split === "test" ? "held out" : e.config.split),
+        h("td", {}, badge(e.status)), h("td", {}, e.config.split === "test" ? "held out" : e.config.split,
+          e.config.shield ? h("span", { class: "muted", title: "driven through the safety layer" }, " · safety layer") : null),
         h("td", { class: "num" }, num(e.config.episodes)),
         h("td", { class: "num" }, e.status === "failed" ? h("span", { class: "reason" }, reason(e.error)) : pct(m.success_rate)),
         h("td", { class: "num" }, num(m.spl, 3)), h("td", {}, age(e.created_at)));
