@@ -65,44 +65,87 @@ def draw_room(ax: Axes, walls: np.ndarray, room_size: float) -> None:
     ax.set_yticks([])
 
 
-def draw_scene(
-    ax: Axes,
-    snap: Mapping[str, np.ndarray],
-    config: EnvConfig,
-    trajectory: np.ndarray | None = None,
-    rays: bool = True,
-    start: np.ndarray | None = None,
-) -> None:
-    """Room, goal, optional trajectory, lidar rays coloured by hit type, robot with heading."""
-    draw_room(ax, snap["walls"], config.room_size)
-    goal = snap["goal"]
-    ax.add_patch(Circle(goal, config.goal_radius, color=GOAL_COLOUR, alpha=0.35, lw=0))
-    ax.plot(*goal, marker="*", color=GOAL_COLOUR, ms=10)
-    if trajectory is not None and len(trajectory) > 1:
-        ax.plot(trajectory[:, 0], trajectory[:, 1], color=PATH_COLOUR, lw=1.5)
-    if start is not None:
-        ax.plot(*start, marker="o", color=PATH_COLOUR, ms=5)
-    pos, theta = snap["pos"], float(snap["theta"])
-    if rays and "lidar_ranges" in snap:
-        angles = theta + beam_angles(config.lidar_beams, config.lidar_fov_deg)
-        for ang, rng_m, hit in zip(angles, snap["lidar_ranges"], snap["lidar_hits"], strict=True):
-            end = pos + rng_m * np.array([np.cos(ang), np.sin(ang)])
-            ax.plot([pos[0], end[0]], [pos[1], end[1]], color=RAY_COLOURS[int(hit)], lw=0.8)
-    r = config.robot_radius
-    ax.add_patch(Circle(pos, r, color=ROBOT_COLOUR, zorder=5))
-    ax.add_patch(
-        FancyArrow(
-            pos[0], pos[1], 1.6 * r * np.cos(theta), 1.6 * r * np.sin(theta),
-            width=0.25 * r, head_width=0.7 * r, head_length=0.5 * r, color="white", zorder=6,
-        )
-    )  # fmt: skip
+class FrameDrawer:
+    """Frames of one size drawn on one figure whose artists move from frame to frame: the room,
+    the goal, the trajectory so far, the lidar rays coloured by hit type, the robot with its
+    heading and a title that fits.
 
+    A figure built from nothing for every frame (as this module did) cost 28 ms a frame at 320 px,
+    most of it building axes and artists; an episode's GIF of a hundred frames built the same room,
+    goal and robot a hundred times. The drawer builds them once and moves them: 10-11 ms a frame
+    (2-core AMD EPYC VM). Close it when done, or use it as a context manager."""
 
-def _figure_to_rgb(fig) -> np.ndarray:
-    fig.canvas.draw()
-    rgb = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
-    plt.close(fig)
-    return rgb
+    _FULL = (0.02, 0.02, 0.96, 0.96)
+    _TITLED = (0.02, 0.02, 0.96, 0.90)
+
+    def __init__(self, config: EnvConfig, size_px: int = 360) -> None:
+        from matplotlib.collections import LineCollection
+
+        self.config = config
+        self.fig = plt.figure(figsize=(size_px / 100, size_px / 100), dpi=100)
+        self.ax = ax = self.fig.add_axes(self._FULL)
+        size, r = config.room_size, config.robot_radius
+        draw_room(ax, np.zeros((2, 2), dtype=bool), size)  # the walls are set by each frame
+        self.room = ax.images[-1]
+        self.goal_disc = ax.add_patch(Circle((0, 0), config.goal_radius, color=GOAL_COLOUR,
+                                             alpha=0.35, lw=0))  # fmt: skip
+        (self.goal_star,) = ax.plot([0], [0], marker="*", color=GOAL_COLOUR, ms=10)
+        (self.path,) = ax.plot([], [], color=PATH_COLOUR, lw=1.5)
+        (self.start,) = ax.plot([], [], marker="o", color=PATH_COLOUR, ms=5, linestyle="none")
+        self.rays = ax.add_collection(LineCollection([], linewidths=0.8, zorder=2, capstyle="projecting"),
+                                      autolim=False)  # fmt: skip
+        self.robot = ax.add_patch(Circle((0, 0), r, color=ROBOT_COLOUR, zorder=5))
+        self.heading = ax.add_patch(FancyArrow(0, 0, 1.6 * r, 0, width=0.25 * r, head_width=0.7 * r,
+                                               head_length=0.5 * r, color="white", zorder=6))  # fmt: skip
+        self._walls: np.ndarray | None = None
+        self._angles = beam_angles(config.lidar_beams, config.lidar_fov_deg)
+
+    def draw(self, state: Any, trajectory: np.ndarray | None = None, title: str | None = None,
+             rays: bool = True, start: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+        """One frame as an RGB uint8 array: ``state`` a snapshot (see the module doc),
+        ``trajectory`` (T, 2) the path so far, ``start`` a marker where it began."""
+        snap = as_snapshot(state)
+        walls = np.asarray(snap["walls"])
+        if self._walls is None or walls.shape != self._walls.shape or not np.array_equal(walls, self._walls):
+            self.room.set_data(walls.astype(float))
+            self._walls = walls.copy()
+        goal = np.asarray(snap["goal"], dtype=float)
+        self.goal_disc.set_center(goal)
+        self.goal_star.set_data([goal[0]], [goal[1]])
+        if trajectory is not None and len(trajectory) > 1:
+            self.path.set_data(trajectory[:, 0], trajectory[:, 1])
+        else:
+            self.path.set_data([], [])
+        self.start.set_data(*(([start[0]], [start[1]]) if start is not None else ([], [])))
+        pos, theta = np.asarray(snap["pos"], dtype=float), float(snap["theta"])
+        if rays and "lidar_ranges" in snap:
+            angles = theta + self._angles
+            ranges = np.asarray(snap["lidar_ranges"], dtype=float)
+            ends = pos + ranges[:, None] * np.stack([np.cos(angles), np.sin(angles)], axis=1)
+            self.rays.set_segments([[pos, end] for end in ends])
+            self.rays.set_colors([RAY_COLOURS[int(h)] for h in snap["lidar_hits"]])
+        else:
+            self.rays.set_segments([])
+        r = self.config.robot_radius
+        self.robot.set_center(pos)
+        self.heading.set_data(x=pos[0], y=pos[1], dx=1.6 * r * np.cos(theta), dy=1.6 * r * np.sin(theta))
+        if title:
+            self.ax.set_position(self._TITLED)
+            fit_title(self.fig, self.ax, title)
+        else:
+            self.ax.set_position(self._FULL)
+            self.ax.set_title("")
+        self.fig.canvas.draw()
+        return np.asarray(self.fig.canvas.buffer_rgba())[..., :3].copy()
+
+    def close(self) -> None:
+        plt.close(self.fig)
+
+    def __enter__(self) -> FrameDrawer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
 
 def render_frame(
@@ -113,13 +156,8 @@ def render_frame(
     size_px: int = 360,
 ) -> np.ndarray:
     """One frame as an RGB uint8 array (size_px x size_px)."""
-    snap = as_snapshot(state)
-    fig = plt.figure(figsize=(size_px / 100, size_px / 100), dpi=100)
-    ax = fig.add_axes((0.02, 0.02, 0.96, 0.90 if title else 0.96))
-    draw_scene(ax, snap, config, trajectory=trajectory)
-    if title:
-        fit_title(fig, ax, title)
-    return _figure_to_rgb(fig)
+    with FrameDrawer(config, size_px) as drawer:
+        return drawer.draw(state, trajectory, title=title)
 
 
 def fit_title(fig, ax: Axes, title: str, largest: float = 9.0, smallest: float = 6.0) -> None:
@@ -163,11 +201,12 @@ def episode_frames(
 ) -> list[np.ndarray]:
     """Frames of an episode with its trajectory so far drawn behind the robot."""
     frames, path = [], []
-    for t, state in enumerate(snapshots):
-        snap = as_snapshot(state)
-        path.append(snap["pos"])
-        label = f"{title}  t={t}" if title else f"t={t}"
-        frames.append(render_frame(snap, config, np.array(path), title=label, size_px=size_px))
+    with FrameDrawer(config, size_px) as drawer:
+        for t, state in enumerate(snapshots):
+            snap = as_snapshot(state)
+            path.append(snap["pos"])
+            label = f"{title}  t={t}" if title else f"t={t}"
+            frames.append(drawer.draw(snap, np.array(path), title=label))
     return frames
 
 

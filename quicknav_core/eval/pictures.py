@@ -179,20 +179,21 @@ def draw_gif(
     ep: Episodes, config: EnvConfig, path: Path, title: str = "", max_frames: int = 60
 ) -> Path:
     """A GIF of the first episodes with lidar rays, one after the other."""
-    from quicknav_core.env.render import render_frame, save_gif
+    from quicknav_core.env.render import FrameDrawer, save_gif
 
     frames = []
-    for i in range(ep.gif["theta"].shape[0]):
-        length = int(ep.steps[i]) + 1
-        stride = max(1, math.ceil(length / max_frames))
-        for t in [*range(0, length, stride), length - 1]:
-            snap = {
-                "walls": ep.walls[i], "pos": ep.trajectories[i, t], "theta": ep.gif["theta"][i, t],
-                "goal": ep.goals[i], "lidar_ranges": ep.gif["lidar_ranges"][i, t],
-                "lidar_hits": ep.gif["lidar_hits"][i, t],
-            }  # fmt: skip
-            frames.append(render_frame(snap, config, ep.trajectories[i, : t + 1],
-                                       title=f"{title} episode {i + 1}  t={t}", size_px=320))  # fmt: skip
+    with FrameDrawer(config, size_px=320) as drawer:
+        for i in range(ep.gif["theta"].shape[0]):
+            length = int(ep.steps[i]) + 1
+            stride = max(1, math.ceil(length / max_frames))
+            for t in [*range(0, length, stride), length - 1]:
+                snap = {
+                    "walls": ep.walls[i], "pos": ep.trajectories[i, t], "theta": ep.gif["theta"][i, t],
+                    "goal": ep.goals[i], "lidar_ranges": ep.gif["lidar_ranges"][i, t],
+                    "lidar_hits": ep.gif["lidar_hits"][i, t],
+                }  # fmt: skip
+                frames.append(drawer.draw(snap, ep.trajectories[i, : t + 1],
+                                          title=f"{title} episode {i + 1}  t={t}"))  # fmt: skip
     return save_gif(frames, path, fps=10)
 
 
