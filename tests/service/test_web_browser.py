@@ -378,9 +378,14 @@ def test_browser__compiling_phase_and_failed_reason_as_the_pages_show_them(serve
 def test_browser__jobs_page_updates_live_cancels_deletes_and_shows_a_sweep(server, page, shots):
     page.goto(server + "/")
     page.wait_for_selector("#jobs tbody tr[data-id]")
+    # two trials of the paper's PPO that differ only in traced numbers: one compiled program
+    # trains both side by side (the built-in space draws rollout lengths and minibatch counts,
+    # a program each, which this page does not need)
     sweep = httpx.post(server + "/jobs/sweep", headers=AUTH, json={
-        "space": "ppo", "trials": 2, "total_steps": 131072,
-        "overrides": {"base.num_envs": 64, "parallel": 1}}).json()  # fmt: skip
+        "space": "ppo", "trials": 2, "parallel": 2, "total_steps": 131072,
+        "overrides": {"base.num_envs": 64, "space": {
+            "algorithm.learning_rate": {"type": "log_float", "low": 1e-4, "high": 1e-3},
+            "algorithm.gamma": {"type": "float", "low": 0.9, "high": 0.99}}}}).json()  # fmt: skip
     long = httpx.post(server + "/jobs/train", headers=AUTH,
                       json={"preset": "demo", "overrides": {"total_steps": 5_000_000}}).json()  # fmt: skip
     # both rows appear without a reload
