@@ -3,6 +3,8 @@ the robot's frame, the path-progress reward, and the NumPy twin's identical plan
 
 from __future__ import annotations
 
+from functools import partial
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -145,6 +147,13 @@ def test_usable_nodes__grid_form_equals_the_disc_test_at_every_node():
     from quicknav_core.env.dynamics import disc_overlaps_wall_bits
     from quicknav_core.env.plan import node_positions, usable_nodes
 
+    # compiled, as the env runs them (op by op, this test compiled ~330 small programs)
+    @partial(jax.jit, static_argnums=(3, 4))
+    def disc_test(rb, room, r, k, reach):
+        pts = node_positions(rb.shape[0], room, k).reshape(-1, 2)
+        return jax.vmap(lambda p: disc_overlaps_wall_bits(p, rb, 0.5, r, reach))(pts)
+
+    grid_form = jax.jit(usable_nodes, static_argnums=(3, 4))
     rng = np.random.default_rng(0)
     for g in (8, 40):  # one and two packed words a row
         for reach, radius in ((0, 0.15), (0, 0.24), (1, 0.4), (2, 0.9)):
@@ -153,8 +162,6 @@ def test_usable_nodes__grid_form_equals_the_disc_test_at_every_node():
             rb = pack_rows(jnp.asarray(walls))
             room, r = jnp.float32(g * 0.5), jnp.float32(radius)
             for k in (1, 3):
-                pts = node_positions(g, room, k).reshape(-1, 2)
-                each = jax.vmap(lambda p, rb=rb, r=r, reach=reach: disc_overlaps_wall_bits(p, rb, 0.5, r, reach))
-                want = ~np.asarray(each(pts)).reshape(g * k, g * k)
-                got = np.asarray(usable_nodes(rb, room, r, k, reach))
+                want = ~np.asarray(disc_test(rb, room, r, k, reach)).reshape(g * k, g * k)
+                got = np.asarray(grid_form(rb, room, r, k, reach))
                 assert (got == want).all(), (g, reach, radius, k, int((got != want).sum()))
