@@ -229,6 +229,24 @@ def test_bad_input_is_refused_with_named_fields(live):
     assert r.status_code == 413 and "exceeds the limit" in r.text
 
 
+def test_artifacts__a_file_rewritten_while_the_job_runs_is_served_anew_never_from_a_cache(live):
+    """A running job rewrites its files under the same name (a sweep's trials.json): every answer
+    says ``Cache-Control: no-cache``, so a browser asks again instead of keeping a copy it thinks
+    fresh (Chromium did, from Last-Modified alone, and a finished sweep's page kept its running
+    trials), and gets the file as it is now."""
+    job = submit_tiny(live.url)
+    folder = live.settings.artifacts_dir / job["id"]
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "trials.json").write_text('{"trials": [{"number": 0, "state": "RUNNING"}]}')
+    url = f"{live.url}/jobs/{job['id']}/artifacts/trials.json"
+    first = httpx.get(url)
+    assert first.status_code == 200 and first.headers["cache-control"] == "no-cache"
+    (folder / "trials.json").write_text('{"trials": [{"number": 0, "state": "COMPLETE", "value": 0.5}]}')
+    again = httpx.get(url, headers={"If-None-Match": first.headers["etag"]})
+    assert again.status_code == 200 and again.headers["cache-control"] == "no-cache"
+    assert again.json()["trials"][0]["state"] == "COMPLETE"
+
+
 def test_artifact_names_cannot_escape_the_job_folder(live):
     job = submit_tiny(live.url)
     (live.settings.artifacts_dir / job["id"]).mkdir(parents=True, exist_ok=True)

@@ -22,10 +22,18 @@ router = APIRouter(prefix="/jobs", tags=["artifacts"], dependencies=[Depends(req
 MEDIA_TYPES = {".png": "image/png", ".gif": "image/gif", ".json": "application/json",
                ".jsonl": "application/x-ndjson", ".csv": "text/csv", ".txt": "text/plain"}  # fmt: skip
 BINARY = "application/octet-stream"
+# a running job's files change under the same name (a sweep's trials.json, metrics.jsonl): a
+# browser must ask again each time, not reuse its copy. Without this, FileResponse's Last-Modified
+# let Chromium keep a sweep's trials.json of two running trials as fresh for seconds after both
+# had finished (heuristic freshness), and the page drew the history of a sweep that had ended
+# without its points
+FRESH = {"Cache-Control": "no-cache"}
 DOWNLOAD_DOC = {
     "description": "the file's bytes, typed by its suffix (application/octet-stream otherwise)",
     "content": {t: {"schema": {"type": "string", "format": "binary"}}
                 for t in (BINARY, *MEDIA_TYPES.values())},
+    "headers": {"Cache-Control": {"description": "no-cache: a running job's files change",
+                                  "schema": {"type": "string"}}},
 }  # fmt: skip
 
 
@@ -69,5 +77,5 @@ def get_artifact(job_id: JobId, name: ArtifactName, jobs: JobsDep) -> Response:
     media_type = MEDIA_TYPES.get(PurePosixPath(name).suffix.lower(), BINARY)
     if isinstance(found, RemoteFile):
         return StreamingResponse(found.chunks, media_type=media_type,
-                                 headers={"Content-Length": str(found.size)})  # fmt: skip
-    return FileResponse(found, media_type=media_type)
+                                 headers={"Content-Length": str(found.size), **FRESH})  # fmt: skip
+    return FileResponse(found, media_type=media_type, headers=FRESH)
