@@ -91,7 +91,6 @@ class FrameDrawer:
                                              alpha=0.35, lw=0))  # fmt: skip
         (self.goal_star,) = ax.plot([0], [0], marker="*", color=GOAL_COLOUR, ms=10)
         (self.path,) = ax.plot([], [], color=PATH_COLOUR, lw=1.5)
-        (self.start,) = ax.plot([], [], marker="o", color=PATH_COLOUR, ms=5, linestyle="none")
         self.rays = ax.add_collection(LineCollection([], linewidths=0.8, zorder=2, capstyle="projecting"),
                                       autolim=False)  # fmt: skip
         self.robot = ax.add_patch(Circle((0, 0), r, color=ROBOT_COLOUR, zorder=5))
@@ -100,10 +99,9 @@ class FrameDrawer:
         self._walls: np.ndarray | None = None
         self._angles = beam_angles(config.lidar_beams, config.lidar_fov_deg)
 
-    def draw(self, state: Any, trajectory: np.ndarray | None = None, title: str | None = None,
-             rays: bool = True, start: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+    def draw(self, state: Any, trajectory: np.ndarray | None = None, title: str | None = None) -> np.ndarray:
         """One frame as an RGB uint8 array: ``state`` a snapshot (see the module doc),
-        ``trajectory`` (T, 2) the path so far, ``start`` a marker where it began."""
+        ``trajectory`` (T, 2) the path so far; rays are drawn when the snapshot has them."""
         snap = as_snapshot(state)
         walls = np.asarray(snap["walls"])
         if self._walls is None or walls.shape != self._walls.shape or not np.array_equal(walls, self._walls):
@@ -116,9 +114,8 @@ class FrameDrawer:
             self.path.set_data(trajectory[:, 0], trajectory[:, 1])
         else:
             self.path.set_data([], [])
-        self.start.set_data(*(([start[0]], [start[1]]) if start is not None else ([], [])))
         pos, theta = np.asarray(snap["pos"], dtype=float), float(snap["theta"])
-        if rays and "lidar_ranges" in snap:
+        if "lidar_ranges" in snap:
             angles = theta + self._angles
             ranges = np.asarray(snap["lidar_ranges"], dtype=float)
             ends = pos + ranges[:, None] * np.stack([np.cos(angles), np.sin(angles)], axis=1)
