@@ -28,19 +28,7 @@ compile_settings.install()
 if "QUICKNAV_TEST_CACHE" not in os.environ:  # this process owns the run's folder: it removes it
     os.environ["QUICKNAV_TEST_CACHE"] = tempfile.mkdtemp(prefix="quicknav-tests-")
     atexit.register(shutil.rmtree, os.environ["QUICKNAV_TEST_CACHE"], ignore_errors=True)
-_CACHE = os.path.join(os.environ["QUICKNAV_TEST_CACHE"], "jax")
-os.makedirs(_CACHE, exist_ok=True)
-# this process and every subprocess a test starts (workers, `quicknav serve`); the CLI's own cache
-# setting reads QUICKNAV_JAX_CACHE, so CLI commands run by tests use the same folder
-os.environ["JAX_COMPILATION_CACHE_DIR"] = _CACHE
-os.environ["QUICKNAV_JAX_CACHE"] = _CACHE
-jax.config.update("jax_compilation_cache_dir", _CACHE)
-# every program, the smallest too: the test run starts hundreds of processes (CLI commands,
-# workers, servers) that compile the same initialisers and helpers, and a cached one loads in
-# milliseconds. `quicknav export` of the demo run, warm, on a 2-core AMD EPYC VM: 8.6 s with the
-# programs under 0.1 s compiled again (179 of them, 5.6 s of XLA), 5.8 s with all of them cached
-os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
-jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+compile_settings.share_cache(os.environ["QUICKNAV_TEST_CACHE"])
 # FastAPI's TestClient sends Host: testserver; the API answers only the names it trusts
 os.environ.setdefault("QUICKNAV_ALLOWED_HOSTS", "testserver,localhost,127.0.0.1,::1")
 # a train job's policy export costs a worker process ~15 s the first time (jax2onnx); the tests of
