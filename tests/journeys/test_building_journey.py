@@ -17,7 +17,6 @@ from tests.journeys.test_readme_journeys import walk
 from tests.service.conftest import free_port
 
 
-
 @pytest.fixture
 def runner(tmp_path):
     r = Runner(workdir=tmp_path, port=free_port(), grpc_port=free_port())

@@ -29,7 +29,6 @@ from quicknav_core.config.resolve import resolve_train
 from tests.journeys.readme import ROOT, Runner, doc_files, http_status, journey, journey_blocks
 from tests.service.conftest import free_port
 
-
 JOURNEYS = ("quickstart", "in-process")
 
 

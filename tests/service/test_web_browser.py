@@ -21,7 +21,6 @@ import pytest
 
 from tests.service.conftest import free_port, quicknav_process, wait_until_up
 
-
 TOKEN = "browser-test-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 JOB_TIMEOUT_MS = 240_000  # a CI machine with 2 busy cores compiles slowly
