@@ -50,4 +50,11 @@ def test_admission__estimate_within_ten_percent_of_the_recorded_peak(name, prese
 def test_admission__estimate_within_ten_percent_of_measured_peak(name, preset, overrides):
     request = case_request(preset, overrides)
     # the process compiles as a worker does (every optimisation on; tests/compile_settings.py)
-    _check(name, estimate(request), peak_rss(request, env=as_a_user_runs()))
+    est, measured = estimate(request), peak_rss(request, env=as_a_user_runs())
+    if est > 1.1 * measured:
+        # a process's peak varies from run to run: mlp-memory-1024 read 910-1003 MB in six runs on
+        # a 2-core AMD EPYC VM (XLA compiles in threads, and how their work overlaps varies). The
+        # estimate must cover the highest, so a low reading is measured once more and the higher
+        # of the two counts; a reading above the estimate is never measured again
+        measured = max(measured, peak_rss(request, env=as_a_user_runs()))
+    _check(name, est, measured)
