@@ -36,6 +36,12 @@ os.environ.setdefault("QUICKNAV_ALLOWED_HOSTS", "testserver,localhost,127.0.0.1,
 os.environ.setdefault("QUICKNAV_EXPORT_POLICIES", "false")
 
 
+def _suites(config) -> tuple[bool, bool]:
+    """Which of README's suites this run selects: (the fast one, the slow one)."""
+    markexpr = config.getoption("markexpr", "").replace(" ", "")
+    return {"slow": (False, True), "notslow": (True, False)}.get(markexpr, (True, True))
+
+
 def pytest_xdist_auto_num_workers(config):
     """``-n auto`` (pyproject's addopts): one xdist worker more than this machine's cores for a run
     that holds the fast suite, whose tests wait on servers, browsers and subprocesses (on 2 cores
@@ -47,8 +53,8 @@ def pytest_xdist_auto_num_workers(config):
     if os.environ.get("PYTEST_XDIST_AUTO_NUM_WORKERS"):
         return None  # xdist's own rule reads it
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    slow_only = config.getoption("markexpr", "").replace(" ", "") == "slow"
-    return cores if slow_only else cores + 1
+    fast, _ = _suites(config)
+    return cores + 1 if fast else cores
 
 
 # Seconds each long module keeps one xdist worker busy, (in the fast suite, in the slow suite), as
@@ -96,8 +102,7 @@ def pytest_collection_modifyitems(config, items):
     first by ``MODULE_SECONDS`` for the suites this run selects, then the rest by their number of
     tests. xdist's own order (by the number of tests alone) handed out a two-test module of 49 s
     near the end, and one worker ran it and another 18 s module while the others stood idle."""
-    markexpr = config.getoption("markexpr", "").replace(" ", "")
-    fast, slow = {"slow": (0, 1), "notslow": (1, 0)}.get(markexpr, (1, 1))
+    fast, slow = _suites(config)
     modules: dict[str, list] = {}
     for item in items:
         modules.setdefault(item.nodeid.split("::", 1)[0], []).append(item)
