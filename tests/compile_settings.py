@@ -52,22 +52,3 @@ def with_cpu_devices(count: int) -> dict[str, str]:
     compile settings kept."""
     flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={count}"
     return {**os.environ, "XLA_FLAGS": flags.strip()}
-
-
-def share_cache(root: str) -> None:
-    """JAX's persistent compilation cache in ``root``/jax for this process and every process it
-    starts (workers, `quicknav serve`; the CLI's own cache setting reads QUICKNAV_JAX_CACHE, so CLI
-    commands run by tests use the same folder)."""
-    import jax
-
-    folder = os.path.join(root, "jax")
-    os.makedirs(folder, exist_ok=True)
-    os.environ["JAX_COMPILATION_CACHE_DIR"] = folder
-    os.environ["QUICKNAV_JAX_CACHE"] = folder
-    jax.config.update("jax_compilation_cache_dir", folder)
-    # every program, the smallest too: the test run starts hundreds of processes (CLI commands,
-    # workers, servers) that compile the same initialisers and helpers, and a cached one loads in
-    # milliseconds. `quicknav export` of the demo run, warm, on a 2-core AMD EPYC VM: 8.6 s with
-    # the programs under 0.1 s compiled again (179 of them, 5.6 s of XLA), 5.8 s with all cached
-    os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)

@@ -28,18 +28,24 @@ compile_settings.install()
 if "QUICKNAV_TEST_CACHE" not in os.environ:  # this process owns the run's folder: it removes it
     os.environ["QUICKNAV_TEST_CACHE"] = tempfile.mkdtemp(prefix="quicknav-tests-")
     atexit.register(shutil.rmtree, os.environ["QUICKNAV_TEST_CACHE"], ignore_errors=True)
-compile_settings.share_cache(os.environ["QUICKNAV_TEST_CACHE"])
+_CACHE = os.path.join(os.environ["QUICKNAV_TEST_CACHE"], "jax")
+os.makedirs(_CACHE, exist_ok=True)
+# this process and every subprocess a test starts (workers, `quicknav serve`); the CLI's own cache
+# setting reads QUICKNAV_JAX_CACHE, so CLI commands run by tests use the same folder
+os.environ["JAX_COMPILATION_CACHE_DIR"] = _CACHE
+os.environ["QUICKNAV_JAX_CACHE"] = _CACHE
+jax.config.update("jax_compilation_cache_dir", _CACHE)
+# every program, the smallest too: the test run starts hundreds of processes (CLI commands,
+# workers, servers) that compile the same initialisers and helpers, and a cached one loads in
+# milliseconds. `quicknav export` of the demo run, warm, on a 2-core AMD EPYC VM: 8.6 s with the
+# programs under 0.1 s compiled again (179 of them, 5.6 s of XLA), 5.8 s with all of them cached
+os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 # FastAPI's TestClient sends Host: testserver; the API answers only the names it trusts
 os.environ.setdefault("QUICKNAV_ALLOWED_HOSTS", "testserver,localhost,127.0.0.1,::1")
 # a train job's policy export costs a worker process ~15 s the first time (jax2onnx); the tests of
 # the export set it back on (the journeys run `quicknav serve` as a user does: on by default)
 os.environ.setdefault("QUICKNAV_EXPORT_POLICIES", "false")
-
-
-def _suites(config) -> tuple[bool, bool]:
-    """Which of README's suites this run selects: (the fast one, the slow one)."""
-    markexpr = config.getoption("markexpr", "").replace(" ", "")
-    return {"slow": (False, True), "notslow": (True, False)}.get(markexpr, (True, True))
 
 
 def pytest_xdist_auto_num_workers(config):
@@ -53,66 +59,24 @@ def pytest_xdist_auto_num_workers(config):
     if os.environ.get("PYTEST_XDIST_AUTO_NUM_WORKERS"):
         return None  # xdist's own rule reads it
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    fast, _ = _suites(config)
-    return cores + 1 if fast else cores
+    slow_only = config.getoption("markexpr", "").replace(" ", "") == "slow"
+    return cores if slow_only else cores + 1
 
 
-# Seconds each long module keeps one xdist worker busy, (in the fast suite, in the slow suite), as
-# measured on a 2-core AMD EPYC VM (2026-11-28, per-test wall time summed per module). Only the
-# order in which modules are handed out reads them: a module not listed here, or listed with old
-# figures, still runs; a listed path that no longer exists fails tests/test_layout.py.
-MODULE_SECONDS: dict[str, tuple[int, int]] = {
-    "tests/service/test_web_browser.py": (165, 0),  # the demo trained, a browser, live jobs
-    "tests/journeys/test_building_journey.py": (0, 130),  # the building policy trained, the journey
-    "tests/core/train/test_memory_admission.py": (1, 130),  # six measured processes
-    "tests/journeys/test_readme_journeys.py": (22, 125),  # README walked
-    "tests/core/train/test_train.py": (76, 25),
-    "tests/service/test_maps.py": (56, 0),
-    "tests/core/test_export.py": (54, 0),
-    "tests/service/test_schemathesis_run.py": (49, 0),  # two tests: last by their count alone
-    "tests/service/test_jobs_on_s3.py": (46, 20),
-    "tests/core/env/test_room_sources.py": (45, 0),
-    "tests/core/train/test_probes.py": (44, 0),
-    "tests/core/networks/test_networks.py": (43, 0),
-    "tests/service/test_worker_capabilities.py": (0, 40),
-    "tests/service/test_web_maps_browser.py": (0, 40),
-    "tests/core/env/test_randomize.py": (40, 0),
-    "tests/service/test_faults.py": (38, 30),
-    "tests/core/eval/test_evaluate.py": (37, 17),
-    "tests/core/env/test_rooms.py": (33, 0),
-    "tests/core/test_sweep.py": (33, 13),
-    "tests/service/test_api.py": (26, 0),
-    "tests/core/env/test_wide_robot.py": (26, 0),
-    "tests/core/env/test_lidar.py": (23, 0),
-    "tests/core/eval/test_robustness.py": (23, 0),
-    "tests/core/env/test_plan.py": (23, 0),
-    "tests/service/test_sweep_jobs.py": (22, 0),
-    "tests/service/test_worker_crash.py": (0, 21),
-    "tests/benchmarks/test_numba_reference.py": (21, 0),
-    "tests/core/train/test_data_parallel.py": (21, 0),
-    "tests/clients/test_onnx_policy.py": (0, 20),
-    "tests/core/eval/test_shield.py": (19, 0),
-    "tests/core/train/test_curriculum.py": (18, 0),
-    "tests/service/test_serve_cli.py": (18, 0),
-}
-
-
-def pytest_collection_modifyitems(config, items):
-    """The order xdist hands out modules (``--dist loadfile``, whole modules to a worker): longest
-    first by ``MODULE_SECONDS`` for the suites this run selects, then the rest by their number of
-    tests. xdist's own order (by the number of tests alone) handed out a two-test module of 49 s
-    near the end, and one worker ran it and another 18 s module while the others stood idle."""
-    fast, slow = _suites(config)
+def pytest_collection_modifyitems(items):
+    """The order xdist hands out modules (``--dist loadfile``, whole modules to a worker): modules
+    marked ``long_module`` first, longest first, then the rest by their number of tests
+    (xdist's own order, which alone would start a one-test module of three minutes last and leave
+    the other worker idle while it runs)."""
     modules: dict[str, list] = {}
     for item in items:
         modules.setdefault(item.nodeid.split("::", 1)[0], []).append(item)
 
-    def order(path: str) -> tuple[int, int]:
-        seconds = MODULE_SECONDS.get(path, (0, 0))
-        expected = fast * seconds[0] + slow * seconds[1]
-        return (0, -expected) if expected else (1, -len(modules[path]))
+    def order(unit: list) -> tuple[int, int]:
+        marker = unit[0].get_closest_marker("long_module")
+        return (0, -marker.args[0]) if marker else (1, -len(unit))
 
-    items[:] = [item for path in sorted(modules, key=order) for item in modules[path]]
+    items[:] = [item for unit in sorted(modules.values(), key=order) for item in unit]
 
 
 @pytest.fixture

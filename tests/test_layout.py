@@ -255,12 +255,3 @@ def test_library__keeps_no_module_level_mutable_state(tmp_path):
     assert len(module_state(bad)) == 3, module_state(bad)  # the scan sees every kind
     found = [f for path in sorted(LIBRARY.rglob("*.py")) for f in module_state(path)]
     assert not found, "\n".join(found)
-
-
-def test_tests__every_module_the_scheduler_times_exists():
-    """``tests/conftest.py`` hands out long modules first by their recorded seconds; a module moved
-    or renamed must take its figures along, or it would be handed out by its number of tests."""
-    from tests.conftest import MODULE_SECONDS
-
-    missing = [path for path in MODULE_SECONDS if not (ROOT / path).is_file()]
-    assert not missing, f"MODULE_SECONDS names modules that do not exist: {missing}"

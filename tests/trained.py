@@ -114,20 +114,3 @@ def seed_trained_job(store, artifacts_dir: Path, run: Path, request: dict | None
                  result={"env_steps": meta.env_steps, "total_steps": config.total_steps,
                          "chunks_done": meta.chunk, "final": {}, "warnings": []})  # fmt: skip
     return job.id
-
-
-if __name__ == "__main__":
-    # `python -m tests.trained building`: .ci/run trains the slow suite's building policy this way,
-    # at low priority beside the fast suite, into the run's cache folder (QUICKNAV_TEST_CACHE); the
-    # slow suite's fixture then waits on the same lock, or finds it done
-    from tests import compile_settings
-
-    wanted = {"demo": trained_demo, "building": trained_building}
-    names = sys.argv[1:]
-    if not names or not set(names) <= set(wanted) or "QUICKNAV_TEST_CACHE" not in os.environ:
-        sys.exit(f"usage: QUICKNAV_TEST_CACHE=<the test run's cache folder> python -m tests.trained"
-                 f" {{{','.join(wanted)}}}...")  # fmt: skip
-    compile_settings.install()
-    compile_settings.share_cache(str(cache_root()))
-    for name in names:
-        print(f"{name}: {wanted[name]()}", flush=True)
