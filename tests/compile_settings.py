@@ -18,6 +18,7 @@ JAX's persistent cache keys on both settings, so one cache folder holds both kin
 
 from __future__ import annotations
 
+import contextlib
 import os
 
 # the user's own XLA_FLAGS, kept for the processes that run as a user does
@@ -36,6 +37,23 @@ def install() -> None:
     os.environ["XLA_FLAGS"] = f"{user} {QUICK_XLA_FLAGS}".strip()
     os.environ[QUICK_JAX] = "1"
     jax.config.update("jax_disable_most_optimizations", True)  # read when jax was imported
+
+
+@contextlib.contextmanager
+def optimized():
+    """Compile with every optimisation, as a user's process does, inside the block: for work that
+    runs far more than it compiles (an oracle driving a hundred episodes). The in-memory caches of
+    compiled programs are emptied first, so that a program compiled at -O0 for an earlier test is
+    compiled again (or loaded from the persistent cache, which keys on the settings), not reused;
+    the test run's quick settings come back when the block ends."""
+    import jax
+
+    jax.clear_caches()
+    jax.config.update("jax_disable_most_optimizations", False)
+    try:
+        yield
+    finally:
+        jax.config.update("jax_disable_most_optimizations", True)
 
 
 def as_a_user_runs() -> dict[str, str]:

@@ -81,15 +81,12 @@ def pytest_collection_modifyitems(items):
 
 @pytest.fixture
 def optimized():
-    """This test's programs compile with every optimisation, as a user's do: for a test that runs
-    far more than it compiles (an oracle driving a hundred episodes), or that holds two programs to
-    the same bits as users run them. The in-memory caches of compiled programs are emptied first:
-    a program this worker compiled at -O0 for an earlier test is compiled again (or loaded from the
-    persistent cache, keyed by its settings), not reused."""
-    jax.clear_caches()
-    jax.config.update("jax_disable_most_optimizations", False)
-    yield
-    jax.config.update("jax_disable_most_optimizations", True)
+    """This test's programs compile with every optimisation, as a user's do
+    (``compile_settings.optimized``): for a test that runs far more than it compiles (an oracle
+    driving a hundred episodes), or that holds two programs to the same bits as users run them. A
+    module fixture of that kind uses ``compile_settings.optimized()`` itself."""
+    with compile_settings.optimized():
+        yield
 
 
 @pytest.fixture(scope="session")

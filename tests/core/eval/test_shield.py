@@ -101,7 +101,7 @@ def test_shield__the_robots_numpy_copy_lets_through_what_the_evaluation_does(shi
     assert 200 < changed < n - 200, changed  # both outcomes are well represented
 
 
-def test_shield__a_blind_plan_follower_stops_walking_into_people_it_sees():
+def test_shield__a_blind_plan_follower_stops_walking_into_people_it_sees(optimized):
     """The oracle follows its plan blind to people and walks into them (and, on this small grid,
     clips a wall now and then); through the safety layer the same oracle, in the same 48
     episodes, collides a quarter as often or less and reaches at least as many goals (measured:
