@@ -579,15 +579,19 @@ class EnvConfig(StrictModel):
 
         g, p, target, cap = self.grid_size, self.return_prob, self.carve_target, self.carve_step_cap
         carver = self.resolved_carver
-        if carving.feasible(g, p, target, cap, carver):
+        # the walk's occupation depends on the grid and return_prob only: solved once, for this
+        # check and every fraction a refusal tries (a grid-128 refusal took 7 s of sparse solves
+        # when each try solved again)
+        pi = carving.occupation(g, p) if carver != "carved" and p > 0 else None
+        if carving.feasible(g, p, target, cap, carver, pi):
             return
-        steps = carving.carver_steps(carver, g, p, target)
+        steps = carving.carver_steps(carver, g, p, target, pi)
         slowest = carving.SLOWEST_ROOM_FACTOR
         named = repr(carver) if self.carver == carver else f"'auto' (here {carver!r})"
         f_max = next(
             (f / 100 for f in range(int(self.carve_fraction * 100), 0, -1)
              if carving.feasible(g, p, max(2, math.ceil(f / 100 * self.inner_cells - 1e-9)), cap,
-                                 carver)),
+                                 carver, pi)),
             0.0,
         )  # fmt: skip
         if carver == "carved":
@@ -599,12 +603,7 @@ class EnvConfig(StrictModel):
                 f" carve_fraction <= {f_max:g}"
             )
         p_max = carving.largest_return_prob(g, target, cap)
-        g_max = next(
-            (h for h in range(g - 1, 3, -1)
-             if carving.feasible(h, p, max(2, math.ceil(self.carve_fraction * (h - 2) ** 2 - 1e-9)),
-                                 self.carve_max_steps or 1000 * (h - 2) ** 2)),
-            4,
-        )  # fmt: skip
+        g_max = self._largest_feasible_grid()
         other = (
             ", or carver='carved' (returns to carved cells)"
             if carving.feasible(g, p, target, cap, "carved") else ""
@@ -617,6 +616,26 @@ class EnvConfig(StrictModel):
             f" {slowest:g}x that), beyond carve_max_steps ({cap:,}); allowed: return_prob <="
             f" {p_max:g}, or carve_fraction <= {f_max:g}, or grid_size <= {g_max}{other}"
         )
+
+    def _largest_feasible_grid(self) -> int:
+        """The largest grid below this one whose walk (this return_prob, carve_fraction and step
+        cap rule) is expected to carve its rooms: a bisection over grid sizes (the steps needed
+        grow with the grid faster than the default cap, 1000 steps a cell), ~7 sparse solves
+        instead of one for each grid size below this one; 4 when none is."""
+        from quicknav_core.env import carving
+
+        def ok(h: int) -> bool:
+            target = max(2, math.ceil(self.carve_fraction * (h - 2) ** 2 - 1e-9))
+            cap = self.carve_max_steps or 1000 * (h - 2) ** 2
+            return carving.feasible(h, self.return_prob, target, cap)
+
+        lo, hi = 4, self.grid_size  # hi: refused (this grid)
+        if not ok(lo):
+            return 4
+        while hi - lo > 1:  # ok(lo), not ok(hi)
+            mid = (lo + hi) // 2
+            lo, hi = (mid, hi) if ok(mid) else (lo, mid)
+        return lo
 
     def build(self, split: Split = "train", runtime: Runtime | None = None
               ) -> tuple[QuickNavEnv, EnvParams]:  # fmt: skip

@@ -34,3 +34,26 @@ def test_feasible__carved_returns_reach_what_centre_returns_cannot():
     assert not carving.feasible(128, 0.05, target, cap, "paper")
     assert carving.feasible(128, 0.05, target, cap, "carved")
     assert not carving.feasible(128, 0.05, target, target, "carved")
+
+
+def test_refusal__solves_the_walk_once_per_grid_and_return_prob_tried(monkeypatch):
+    """A refused config's message names three ways out (return_prob, carve_fraction, grid_size).
+    Each occupation is one sparse solve (~35 ms at grid 128): the fractions tried share the
+    config's own, and the grid sizes are bisected, not walked one by one (a grid-128 refusal
+    solved 173 times, 7 s of CPU in the request that sent it)."""
+    from quicknav_core.config import EnvConfig
+
+    solved = []
+    real = carving.occupation
+    monkeypatch.setattr(carving, "occupation", lambda g, p: solved.append((g, p)) or real(g, p))
+    with pytest.raises(ValueError, match="grid_size <= ") as refused:
+        EnvConfig(grid_size=128, room_size=64.0, carver="centre")
+    g_max = int(str(refused.value).split("grid_size <= ")[1].split(",")[0].split()[0])
+    # the suggested grid is accepted, the next one up refused
+    EnvConfig(grid_size=g_max, room_size=g_max / 2, carver="centre")
+    with pytest.raises(ValueError, match="grid_size <= "):
+        EnvConfig(grid_size=g_max + 1, room_size=(g_max + 1) / 2, carver="centre")
+    first = solved[: solved.index((g_max, 0.05))] if (g_max, 0.05) in solved else solved
+    at_128 = [p for g, p in first if g == 128]
+    assert len(at_128) == len(set(at_128)), "the same walk solved twice"
+    assert len(first) <= 30, len(first)
