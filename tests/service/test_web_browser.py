@@ -185,18 +185,18 @@ def test_browser__submitted_job_grows_its_curve_and_succeeds(server, page, shots
     page.goto(server + "/ui/submit")
     page.wait_for_selector("#submit-form")
     page.select_option("#preset", "demo")
-    # four chunks of the demo preset, each long enough (a second or two) for the page to draw it
-    # while it watches (the policy that learned, for the tests after this one, is the test run's
-    # trained demo)
-    steps = 4 * 196_608
+    # four chunks of the demo preset, each long enough (24 updates, about two seconds) for the
+    # page to draw it while it watches (the policy that learned, for the tests after this one, is
+    # the test run's trained demo)
+    steps = 4 * 98_304
     page.fill("#f-total_steps", str(steps))
     page.fill("#f-env\\.grid_size", "")
-    page.fill("#f-overrides", "chunk_steps=196608")
+    page.fill("#f-overrides", "chunk_steps=98304")
     page.click("#submit")
     page.wait_for_url("**/ui/jobs/*", timeout=20_000)
     job_id = page.url.rsplit("/", 1)[-1]
     job = httpx.get(f"{server}/jobs/{job_id}", headers=AUTH).json()
-    assert job["config"]["total_steps"] == steps and job["config"]["chunk_steps"] == 196_608
+    assert job["config"]["total_steps"] == steps and job["config"]["chunk_steps"] == 98_304
     assert job["request"]["preset"] == "demo"
 
     # watch the curve while the job runs: the number of points it draws, as the page says
