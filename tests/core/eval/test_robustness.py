@@ -11,7 +11,6 @@ from quicknav_core.eval import pictures
 from quicknav_core.eval.evaluate import evaluate
 from quicknav_core.eval.robustness import LEVELS, robustness_levels
 from quicknav_core.eval.scripted import OracleAgent
-from tests.compile_settings import optimized
 
 ENV = EnvConfig(grid_size=8, lidar_beams=8, train_rooms=32, test_rooms=24, max_steps=80)
 
@@ -21,9 +20,8 @@ def oracle_robustness(tmp_path_factory):
     out = tmp_path_factory.mktemp("robust")
     cfg = EvalConfig(policy="oracle", env=ENV, episodes=48, seed=3, gif_episodes=0, robustness=True)
     seen = []
-    with optimized():  # every level's episodes run far more than they compile
-        result, _ = evaluate(ENV, OracleAgent(ENV.room_size, ENV.goal_radius), cfg, out,
-                             progress=lambda done, total: seen.append((done, total)))  # fmt: skip
+    result, _ = evaluate(ENV, OracleAgent(ENV.room_size, ENV.goal_radius), cfg, out,
+                         progress=lambda done, total: seen.append((done, total)))  # fmt: skip
     return result, out, seen
 
 
