@@ -54,16 +54,18 @@ def test_obstacles__the_lidar_sees_them_as_walls(episodes):
         s = jax.tree.map(lambda x, i=i: x[i], states)
         walls, pos, th = np.asarray(s.walls), np.asarray(s.pos), float(s.theta)
         ob = jax.tree.map(np.asarray, s.obstacles)
+        march = np.arange(0.0, cfg.lidar_max_range, 0.002)  # every point of the beam, 2 mm apart
         for b, a in enumerate(angles):
             d = np.array([np.cos(th + a), np.sin(th + a)])
+            p = pos + march[:, None] * d
+            rc = np.floor(p[:, ::-1] / cfg.cell_size).astype(int)
+            rc = np.clip(rc, 0, np.array(walls.shape) - 1)  # past the first hit only: the ring is walls
+            in_disc = np.any((ob.radius > 0) & (np.linalg.norm(p[:, None] - ob.pos, axis=2) <= ob.radius), axis=1)
+            hit = walls[rc[:, 0], rc[:, 1]] | in_disc
             t_hit = cfg.lidar_max_range
-            for t in np.arange(0.0, cfg.lidar_max_range, 0.002):
-                p = pos + t * d
-                rc = np.floor(p[::-1] / cfg.cell_size).astype(int)
-                in_disc = np.any((ob.radius > 0) & (np.linalg.norm(ob.pos - p, axis=1) <= ob.radius))
-                if walls[rc[0], rc[1]] or in_disc:
-                    t_hit, seen_obstacle = t, seen_obstacle + int(in_disc)
-                    break
+            if hit.any():  # the first point of the march in a wall or a disc
+                first = int(np.argmax(hit))
+                t_hit, seen_obstacle = march[first], seen_obstacle + int(in_disc[first])
             assert float(s.lidar_ranges[b]) == pytest.approx(t_hit, abs=0.01), (i, b)
     assert seen_obstacle >= 3  # beams that met a disc before any wall
 
