@@ -11,7 +11,9 @@ at -O0) and without XLA's newer CPU fusion emitters: the GTrXL equality test's c
   (a worker's peak is what it measures) and README's journeys (run as a user runs them) start
   their processes with ``as_a_user_runs()``;
 - a test that runs much more than it compiles, in this process, takes the ``optimized`` fixture
-  (``tests/conftest.py``): its programs compile with every optimisation, as a user's would.
+  (``tests/conftest.py``), a module fixture uses ``optimized()`` below: its programs compile with
+  every optimisation, as a user's would (measure a change with ``tests/cpu_profile.py``: for the
+  robustness levels the compiles cost more than the run saved).
 
 JAX's persistent cache keys on both settings, so one cache folder holds both kinds of program.
 """

@@ -619,9 +619,11 @@ class EnvConfig(StrictModel):
 
     def _largest_feasible_grid(self) -> int:
         """The largest grid below this one whose walk (this return_prob, carve_fraction and step
-        cap rule) is expected to carve its rooms: a bisection over grid sizes (the steps needed
-        grow with the grid faster than the default cap, 1000 steps a cell), ~7 sparse solves
-        instead of one for each grid size below this one; 4 when none is."""
+        cap rule) is expected to carve its rooms, 4 when none is: a bisection over grid sizes,
+        ~7 sparse solves instead of one for each grid size below this one. The steps needed grow
+        with the grid; where rounding the target makes feasibility step back and forth at small
+        grids (a fixed cap of a few thousand steps), it names a feasible grid at such a step, not
+        always the largest one."""
         from quicknav_core.env import carving
 
         def ok(h: int) -> bool:
