@@ -7,7 +7,6 @@ over HTTP for the studies it sees."""
 from __future__ import annotations
 
 import shutil
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -18,6 +17,7 @@ import redis
 
 from quicknav_core.config import resolve_sweep
 from quicknav_core.sweep import make_storage, open_study
+from tests.processes import LoggedProcess
 from tests.service.conftest import free_port
 
 REDIS_URL = "redis://127.0.0.1:6379/11"  # this file's own DB index
@@ -32,8 +32,7 @@ def dashboard_program() -> str:
 
 def studies_seen(storage_url: str) -> list[dict]:
     port = free_port()
-    proc = subprocess.Popen([dashboard_program(), storage_url, "--port", str(port), "--quiet"],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)  # fmt: skip
+    proc = LoggedProcess([dashboard_program(), storage_url, "--port", str(port), "--quiet"])
     try:
         deadline = time.time() + 60
         while True:
@@ -43,7 +42,7 @@ def studies_seen(storage_url: str) -> list[dict]:
                     return r.json()["study_summaries"]
             except httpx.HTTPError:
                 pass
-            assert proc.poll() is None and time.time() < deadline, proc.stdout.read()
+            assert proc.poll() is None and time.time() < deadline, proc.output()
             time.sleep(0.3)
     finally:
         proc.terminate()

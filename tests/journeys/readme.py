@@ -40,6 +40,7 @@ from sybil import Document
 from sybil.parsers.markdown.lexers import FencedCodeBlockLexer
 
 from tests.compile_settings import as_a_user_runs
+from tests.processes import LoggedProcess
 
 ROOT = Path(__file__).resolve().parents[2]
 MARKER = re.compile(r"<!--\s*journey:\s*(?P<name>[\w-]+)\s*-->\s*\Z")
@@ -141,7 +142,7 @@ class Runner:
     map_id: str | None = None
     eval_id: str | None = None
     history: list[Ran] = field(default_factory=list)
-    server: subprocess.Popen | None = None
+    server: LoggedProcess | None = None
     shared: Runner | None = None  # the module's service this runner's commands talk to
     trained: dict[str, Path] = field(default_factory=dict)  # command -> the run folder it made
 
@@ -244,9 +245,8 @@ class Runner:
             assert httpx.get(f"{self.url}/healthz", timeout=5).status_code == 200
             return
         assert self.server is None, "the journey starts the service twice"
-        self.server = subprocess.Popen(["bash", "-c", f"exec {command.partition(' #')[0]}"],
-                                       cwd=self.workdir, env=self.env(), stdout=subprocess.PIPE,
-                                       stderr=subprocess.STDOUT, text=True, start_new_session=True)  # fmt: skip
+        self.server = LoggedProcess(["bash", "-c", f"exec {command.partition(' #')[0]}"],
+                                    cwd=self.workdir, env=self.env(), start_new_session=True)
         deadline = time.time() + 120
         while True:
             try:
@@ -255,7 +255,7 @@ class Runner:
             except httpx.HTTPError:
                 pass
             if self.server.poll() is not None or time.time() > deadline:
-                out = self.server.stdout.read() if self.server.poll() is not None else ""
+                out = self.server.output()
                 raise AssertionError(f"`{command}` did not come up on {self.url}:\n{out}")
             time.sleep(0.3)
 
@@ -266,11 +266,10 @@ class Runner:
         server, self.server = self.server, None
         os.killpg(server.pid, signal.SIGTERM)
         try:
-            out, _ = server.communicate(timeout=60)
+            return server.finish(60)
         except subprocess.TimeoutExpired:
             os.killpg(server.pid, signal.SIGKILL)
-            out, _ = server.communicate()
-        return out or ""
+            return server.finish(60)
 
 
 def http_status(ran: Ran) -> int:

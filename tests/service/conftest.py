@@ -19,6 +19,7 @@ from quicknav_service.jobs.sqlite_store import SQLiteJobStore
 from quicknav_service.settings import Settings
 from quicknav_service.worker import Worker
 from tests.compile_settings import as_a_user_runs
+from tests.processes import LoggedProcess
 
 
 def quicknav_process(args: list[str], as_a_user: bool = False, **env: str) -> subprocess.Popen:
@@ -27,11 +28,10 @@ def quicknav_process(args: list[str], as_a_user: bool = False, **env: str) -> su
     process that trains more than it compiles."""
     full = {**(as_a_user_runs() if as_a_user else os.environ), **env}
     full.pop("QUICKNAV_REDIS_URL", None)
-    return subprocess.Popen([sys.executable, "-m", "quicknav_cli", *args], env=full,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)  # fmt: skip
+    return LoggedProcess([sys.executable, "-m", "quicknav_cli", *args], env=full)
 
 
-def wait_until_up(url: str, proc: subprocess.Popen, verify=True, timeout: float = 60.0) -> None:
+def wait_until_up(url: str, proc: LoggedProcess, verify=True, timeout: float = 60.0) -> None:
     """Until ``url``/healthz answers 200; fails with the process's output if it exits first."""
     deadline = time.time() + timeout
     while True:
@@ -40,7 +40,7 @@ def wait_until_up(url: str, proc: subprocess.Popen, verify=True, timeout: float 
                 return
         except httpx.HTTPError:
             pass
-        assert proc.poll() is None and time.time() < deadline, proc.stdout.read()
+        assert proc.poll() is None and time.time() < deadline, proc.output()
         time.sleep(0.2)
 
 

@@ -16,6 +16,7 @@ from quicknav_service.api.main import create_app
 from quicknav_service.jobs.models import JobKind
 from quicknav_service.jobs.sqlite_store import SQLiteJobStore
 from quicknav_service.settings import Settings
+from tests.processes import LoggedProcess
 from tests.service.conftest import LiveServer, free_port
 
 
@@ -339,7 +340,6 @@ def test_grpc__same_token_format_as_rest_and_guessing_is_limited(tmp_path):
 def test_secrets__never_in_logs_answers_or_readiness(tmp_path):
     import os
     import signal
-    import subprocess
     import sys
     import time
 
@@ -352,9 +352,8 @@ def test_secrets__never_in_logs_answers_or_readiness(tmp_path):
         env = {**os.environ, "QUICKNAV_REDIS_URL": redis_server.url, "QUICKNAV_API_TOKEN": TOKEN,
                "QUICKNAV_DATA_DIR": str(tmp_path / "data"), "QUICKNAV_PORT": str(port),
                "QUICKNAV_GRPC_PORT": str(grpc_port), "QUICKNAV_AUTH_FAILURES_MAX": "3"}  # fmt: skip
-        server = subprocess.Popen([sys.executable, "-m", "quicknav_cli", "serve"], env=env,
-                                  stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                  start_new_session=True)  # fmt: skip
+        server = LoggedProcess([sys.executable, "-m", "quicknav_cli", "serve"], env=env,
+                               start_new_session=True)
         url = f"http://127.0.0.1:{port}"
         answers = []
         try:
@@ -378,7 +377,7 @@ def test_secrets__never_in_logs_answers_or_readiness(tmp_path):
                 answers.append(httpx.get(f"{url}/jobs", headers={"Authorization": "Bearer x"}).text)
         finally:
             os.killpg(server.pid, signal.SIGTERM)
-            log, _ = server.communicate(timeout=60)
+            log = server.finish(60)
     for text in [log, *answers]:
         assert password not in text and TOKEN not in text, text[-3000:]
     assert "redis://:***@127.0.0.1" in log  # the store is named, its password is not

@@ -26,6 +26,7 @@ from quicknav_service.jobs.models import JobStatus, StoreUnavailable
 from quicknav_service.jobs.redis_store import RedisJobStore
 from quicknav_service.jobs.sqlite_store import SQLiteJobStore
 from quicknav_service.supervisor import exit_reason
+from tests.processes import LoggedProcess
 from tests.service.conftest import LiveServer
 from tests.service.faults import RedisServer, SmallDisk
 
@@ -184,17 +185,15 @@ def test_redis_outage__api_answers_503_readiness_names_it_workers_carry_on(tmp_p
 
 def test_redis__worker_process_starts_against_a_dead_redis_and_waits(tmp_path):
     import os
-    import subprocess
     import sys
 
     folder = tmp_path / "redis"
     rs = RedisServer(folder)
     env = {**os.environ, "QUICKNAV_REDIS_URL": rs.url, "QUICKNAV_DATA_DIR": str(tmp_path / "data")}
-    proc = subprocess.Popen([sys.executable, "-m", "quicknav_cli", "worker"], env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)  # fmt: skip
+    proc = LoggedProcess([sys.executable, "-m", "quicknav_cli", "worker"], env=env)
     try:
         time.sleep(4.0)
-        assert proc.poll() is None, proc.stdout.read() if proc.poll() is not None else ""
+        assert proc.poll() is None, proc.output()
         with rs:
             store = RedisJobStore(rs.url)
             job, _ = store.submit("eval", {"policy": "random"}, {"bad": "config"})

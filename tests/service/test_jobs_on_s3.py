@@ -28,6 +28,7 @@ from quicknav_service.jobs.models import JobKind, JobStatus
 from quicknav_service.jobs.redis_store import RedisJobStore
 from quicknav_service.settings import Settings
 from quicknav_service.worker import Worker
+from tests.processes import LoggedProcess
 from tests.service.conftest import LiveServer
 from tests.service.test_api import TINY, sse_events, submit_tiny, wait_status
 from tests.service.test_sweep_jobs import sweep_config
@@ -223,8 +224,7 @@ def test_two_machines_resume_from_the_bucket(tmp_path, s3_env):
         env = {**os.environ, **s3_env.env(), "QUICKNAV_REDIS_URL": REDIS_URL,
                "QUICKNAV_DATA_DIR": str(tmp_path / name), "QUICKNAV_ARTIFACTS_URL": url,
                "QUICKNAV_LEASE_S": "3", "QUICKNAV_HEARTBEAT_S": "0.5", "QUICKNAV_MAX_CHUNK_S": "0.5"}  # fmt: skip
-        return subprocess.Popen([sys.executable, "-m", "quicknav_cli", "worker"], env=env,
-                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)  # fmt: skip
+        return LoggedProcess([sys.executable, "-m", "quicknav_cli", "worker"], env=env)
 
     def wait(pred, what, timeout=180):
         deadline = time.time() + timeout

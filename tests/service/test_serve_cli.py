@@ -57,7 +57,7 @@ def test_worker__serves_rollout_on_its_device_and_the_api_lists_it(tmp_path):
         try:
             deadline = time.time() + 90
             while not (listed := qn.rollout_endpoints()):
-                assert proc.poll() is None and time.time() < deadline, proc.stdout.read()
+                assert proc.poll() is None and time.time() < deadline, proc.output()
                 time.sleep(0.3)
             assert len(listed) == 1 and listed[0]["address"] == f"127.0.0.1:{grpc_port}"
             assert listed[0]["worker"].startswith("worker-") and listed[0]["pid"] == proc.pid

@@ -18,6 +18,7 @@ from quicknav_service.jobs.models import JobStatus
 from quicknav_service.jobs.redis_store import RedisJobStore
 from quicknav_service.jobs.sqlite_store import SQLiteJobStore
 from tests.compile_settings import with_cpu_devices
+from tests.processes import LoggedProcess
 from tests.service.conftest import LiveServer
 
 REDIS_URL = "redis://127.0.0.1:6379/9"  # this test's own DB index
@@ -38,8 +39,7 @@ def _worker(data: Path, devices: int, redis_url: str | None) -> subprocess.Popen
     env.pop("QUICKNAV_REDIS_URL", None)
     if redis_url:
         env["QUICKNAV_REDIS_URL"] = redis_url
-    return subprocess.Popen([sys.executable, "-m", "quicknav_cli", "worker"], env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)  # fmt: skip
+    return LoggedProcess([sys.executable, "-m", "quicknav_cli", "worker"], env=env)
 
 
 def _wait(pred, what: str, procs, timeout: float = 180):
@@ -48,7 +48,7 @@ def _wait(pred, what: str, procs, timeout: float = 180):
         if pred():
             return
         for p in procs:
-            assert p.poll() is None, f"a worker exited: {p.stdout.read()}"
+            assert p.poll() is None, f"a worker exited: {p.output()}"
         time.sleep(0.2)
     raise AssertionError(f"timed out waiting for {what}")
 

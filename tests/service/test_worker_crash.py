@@ -17,6 +17,7 @@ import redis
 from quicknav_core.config import apply_overrides, get_preset
 from quicknav_service.jobs.models import JobStatus
 from quicknav_service.jobs.redis_store import RedisJobStore
+from tests.processes import LoggedProcess
 
 REDIS_URL = "redis://127.0.0.1:6379/15"  # this test's own DB index
 
@@ -24,8 +25,7 @@ REDIS_URL = "redis://127.0.0.1:6379/15"  # this test's own DB index
 def _worker(tmp_path: Path, *args: str) -> subprocess.Popen:
     env = {**os.environ, "QUICKNAV_REDIS_URL": REDIS_URL, "QUICKNAV_DATA_DIR": str(tmp_path / "data"),
            "QUICKNAV_LEASE_S": "3", "QUICKNAV_HEARTBEAT_S": "0.5"}  # fmt: skip
-    return subprocess.Popen([sys.executable, "-m", "quicknav_cli", "worker", *args], env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)  # fmt: skip
+    return LoggedProcess([sys.executable, "-m", "quicknav_cli", "worker", *args], env=env)
 
 
 def _wait(pred, timeout=120, what="condition"):
@@ -60,7 +60,7 @@ def test_sigterm_hands_back_sigkill_is_reclaimed_and_resumed(tmp_path):
         procs.append(a)
         _wait(lambda: chunks_done() >= 2, what="first checkpoints")
         a.send_signal(signal.SIGTERM)
-        assert a.wait(60) == 0, a.stdout.read()
+        assert a.wait(60) == 0, a.output()
         job_a = store.get(job.id)
         assert job_a.status == JobStatus.queued and job_a.attempts == 0
         after_term = chunks_done()
@@ -77,7 +77,7 @@ def test_sigterm_hands_back_sigkill_is_reclaimed_and_resumed(tmp_path):
         # 3. a live worker reclaims it after the lease and finishes from the last checkpoint
         c = _worker(tmp_path, "--burst")
         procs.append(c)
-        assert c.wait(240) == 0, c.stdout.read()
+        assert c.wait(240) == 0, c.output()
         final = store.get(job.id)
         assert final.status == JobStatus.succeeded, final.error
         assert final.attempts == 2  # the graceful hand-back did not count, the crash did
