@@ -18,6 +18,7 @@ def test_logged_process__a_child_writing_megabytes_is_never_blocked():
     out = child.output()
     assert out.startswith("line 00000 ") and len(out) == 65536 * 64 + len("stderr too\n")
     assert out.endswith("stderr too\n")
+    child.log_path.unlink()
 
 
 def test_logged_process__a_running_childs_output_is_its_tail_so_far():
