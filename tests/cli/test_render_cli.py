@@ -1,6 +1,7 @@
 import json
 
 import numpy as np
+import pytest
 from PIL import Image
 from typer.testing import CliRunner
 
@@ -90,3 +91,30 @@ def test_fit_title__a_long_title_stays_inside_a_320_px_frame():
         assert ax.title.get_text().replace("\n", " ").split()[-1] == "0.91"  # nothing dropped
     finally:
         plt.close(fig)
+
+
+def test_gif__one_palette_keeps_every_frame_and_a_colour_only_one_unsampled_frame_has(tmp_path):
+    from matplotlib.colors import to_rgb
+
+    from quicknav_core.env.render import FREE_COLOUR, PATH_COLOUR, RAY_COLOURS, WALL_COLOUR
+
+    def rgb(name):
+        return np.array([round(255 * c) for c in to_rgb(name)], np.uint8)
+
+    frames = []
+    for i in range(40):  # the palette samples every second frame: frame 7 is not among them
+        f = np.empty((64, 96, 3), np.uint8)
+        f[:] = rgb(FREE_COLOUR)
+        f[:, : 2 + 2 * i] = rgb(WALL_COLOUR)  # a wall edge that moves: no two frames alike
+        f[40:44, 10:60] = rgb(PATH_COLOUR)
+        if i == 7:
+            f[10:20, 70:90] = rgb(RAY_COLOURS[2])  # a ray that hit the goal, in this frame only
+        frames.append(f)
+    path = save_gif(frames, tmp_path / "f.gif")
+    with Image.open(path) as im:
+        assert im.n_frames == 40
+        for i in (0, 7, 39):
+            im.seek(i)
+            assert np.array_equal(np.asarray(im.convert("RGB")), frames[i]), i
+    with pytest.raises(ValueError, match="one size"):
+        save_gif([frames[0], frames[0][:32]], tmp_path / "g.gif")
