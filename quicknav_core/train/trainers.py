@@ -263,10 +263,18 @@ class Trainer:
 
     def from_bytes(self, data: bytes):
         """A state from ``to_bytes``; fields added since the checkpoint was written (the
-        curriculum's ``pool_count``) take their fresh values instead of failing the restore."""
-        target = jax.device_get(self.init_state())
+        curriculum's ``pool_count``) take their fresh values instead of failing the restore.
+
+        The state's structure and shapes come from tracing ``init_state`` (``jax.eval_shape``):
+        nothing is compiled or computed, as loading needs none of its values. Only a checkpoint
+        that lacks a field pays for a real ``init_state``, for that field's value."""
+        raw = serialization.msgpack_restore(data)
+        target = jax.eval_shape(self.init_state)
         fresh = serialization.to_state_dict(target)
-        loaded = _with_missing(fresh, serialization.msgpack_restore(data))
+        if _lacks_a_field(fresh, raw):
+            target = jax.device_get(self.init_state())
+            fresh = serialization.to_state_dict(target)
+        loaded = _with_missing(fresh, raw)
         _check_shapes(fresh, loaded, self.config)
         return self.place(serialization.from_state_dict(target, loaded))
 
@@ -310,6 +318,13 @@ def _with_missing(fresh: Any, loaded: Any) -> Any:
     if not isinstance(fresh, dict) or not isinstance(loaded, dict):
         return loaded
     return {k: _with_missing(v, loaded[k]) if k in loaded else v for k, v in fresh.items()}
+
+
+def _lacks_a_field(fresh: Any, loaded: Any) -> bool:
+    """Whether a restored state dict lacks a key the fresh one has (at any depth)."""
+    if not isinstance(fresh, dict) or not isinstance(loaded, dict):
+        return False
+    return any(k not in loaded or _lacks_a_field(v, loaded[k]) for k, v in fresh.items())
 
 
 def _check_shapes(fresh: Any, loaded: Any, config: TrainConfig, path: str = "") -> None:

@@ -175,3 +175,32 @@ def test_checkpoint_from_before_the_curriculum_field_still_restores():
     restored = trainer.from_bytes(serialization.msgpack_serialize(old))
     assert int(np.asarray(restored.env_state.pool_count)[0]) == 0
     np.testing.assert_array_equal(np.asarray(restored.env_state.env_state.pos), np.asarray(state.env_state.env_state.pos))
+
+
+def test_checkpoint__a_complete_one_loads_without_running_init_state():
+    """Loading takes the state's layout from tracing ``init_state`` (``jax.eval_shape``): nothing
+    of it is computed (an eval, an export or a resume used to build and run the whole
+    initialisation first, rooms and rollout buffers included, only to throw its values away)."""
+    from flax import serialization
+
+    from quicknav_core.train.trainers import make_trainer
+
+    trainer = make_trainer(_tiny("mlp", promote_at=0.8))
+    state = jax.device_get(trainer.init_state())
+    data = serialization.msgpack_serialize(serialization.to_state_dict(state))
+    fresh = make_trainer(_tiny("mlp", promote_at=0.8))
+    traced = []  # per init_state call: were its outputs tracers (traced, not computed)?
+    real_init = fresh.init_state
+
+    def spy():
+        out = real_init()
+        traced.append(any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(out)))
+        return out
+
+    fresh.init_state = spy
+    restored = fresh.from_bytes(data)
+    assert traced == [True]
+    for a, b in zip(jax.tree.leaves(restored), jax.tree.leaves(state), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    # the layout loading always gave: the fresh trainer's own initial state's
+    assert jax.tree.structure(restored) == jax.tree.structure(real_init())
