@@ -73,7 +73,10 @@ class FrameDrawer:
     A figure built from nothing for every frame (as this module did) cost 28 ms a frame at 320 px,
     most of it building axes and artists; an episode's GIF of a hundred frames built the same room,
     goal and robot a hundred times. The drawer builds them once and moves them: 10-11 ms a frame
-    (2-core AMD EPYC VM). Close it when done, or use it as a context manager."""
+    (2-core AMD EPYC VM). The room, the goal and the axes' frame are drawn once per episode and
+    kept as a background; each frame restores it and draws only what moves (the path, the rays,
+    the robot, the title), the same pixels as a whole draw: the demo eval's 109 frames took 39 ms
+    each, now 14 (2-core Intel Xeon VM). Close it when done, or use it as a context manager."""
 
     _FULL = (0.02, 0.02, 0.96, 0.96)
     _TITLED = (0.02, 0.02, 0.96, 0.90)
@@ -98,6 +101,11 @@ class FrameDrawer:
                                                head_length=0.5 * r, color="white", zorder=6))  # fmt: skip
         self._walls: np.ndarray | None = None
         self._angles = beam_angles(config.lidar_beams, config.lidar_fov_deg)
+        # what moves from frame to frame is drawn over a saved background (matplotlib's blitting)
+        self._moving = sorted([self.path, self.rays, ax.title, self.robot, self.heading],
+                              key=lambda a: a.get_zorder())  # fmt: skip
+        self._background = None
+        self._background_key: tuple | None = None
 
     def draw(self, state: Any, trajectory: np.ndarray | None = None, title: str | None = None) -> np.ndarray:
         """One frame as an RGB uint8 array: ``state`` a snapshot (see the module doc),
@@ -132,8 +140,25 @@ class FrameDrawer:
         else:
             self.ax.set_position(self._FULL)
             self.ax.set_title("")
-        self.fig.canvas.draw()
-        return np.asarray(self.fig.canvas.buffer_rgba())[..., :3].copy()
+        canvas = self.fig.canvas
+        key = (self._walls.tobytes(), self._walls.shape, tuple(goal), tuple(self.ax.get_position().bounds))
+        if key != self._background_key:
+            # the room, the goal and the frame of the axes, drawn once per episode (and layout)
+            for artist in self._moving:
+                artist.set_visible(False)
+            # a whole draw places the title anew, and a hidden title far above the axes
+            placed = self.ax.title.get_position()
+            canvas.draw()
+            self.ax.title.set_position(placed)
+            self._background = canvas.copy_from_bbox(self.fig.bbox)
+            self._background_key = key
+            for artist in self._moving:
+                artist.set_visible(True)
+        else:
+            canvas.restore_region(self._background)
+        for artist in self._moving:  # in the order a whole draw gives them (by zorder)
+            self.ax.draw_artist(artist)
+        return np.asarray(canvas.buffer_rgba())[..., :3].copy()
 
     def close(self) -> None:
         plt.close(self.fig)

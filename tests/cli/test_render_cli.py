@@ -118,3 +118,27 @@ def test_gif__one_palette_keeps_every_frame_and_a_colour_only_one_unsampled_fram
             assert np.array_equal(np.asarray(im.convert("RGB")), frames[i]), i
     with pytest.raises(ValueError, match="one size"):
         save_gif([frames[0], frames[0][:32]], tmp_path / "g.gif")
+
+
+def test_frame_drawer__blitted_frames_are_the_pixels_of_a_whole_draw():
+    """Frames drawn over the saved background (room, goal) equal a whole redraw of the figure:
+    across episodes, a short title, one long enough to wrap onto two lines, and none."""
+    from quicknav_core.env.render import FrameDrawer
+
+    cfg = EnvConfig(grid_size=8, train_rooms=4)
+    env = QuickNavNumpyEnv(cfg)
+    rng = np.random.default_rng(0)
+    titles = [lambda t: f"episode 1  t={t}", lambda t: "a title far too long to fit on one line " * 2 + str(t),
+              lambda t: None]  # fmt: skip
+    with FrameDrawer(cfg, size_px=160) as drawer:
+        for episode, title in enumerate(titles):
+            env.reset(seed=episode)
+            path = []
+            for t in range(4):
+                snap = env.snapshot()
+                path.append(snap["pos"])
+                frame = drawer.draw(snap, np.array(path), title=title(t))
+                drawer.fig.canvas.draw()  # the whole figure, as every frame was drawn before
+                whole = np.asarray(drawer.fig.canvas.buffer_rgba())[..., :3]
+                assert np.array_equal(frame, whole), (episode, t)
+                env.step(rng.uniform(-1, 1, 2))
