@@ -4,7 +4,8 @@
 - nothing outside ``quicknav_core/env/`` touches a private name of the env;
 - the library's modules, and its packages, import each other without cycles (lazy imports count
   too), and so do the service's modules;
-- the library keeps no module-level mutable state (the Runtime holds it).
+- the library keeps no module-level mutable state (the Runtime holds it);
+- the tests start no child process with an output pipe they never read.
 """
 
 from __future__ import annotations
@@ -255,3 +256,19 @@ def test_library__keeps_no_module_level_mutable_state(tmp_path):
     assert len(module_state(bad)) == 3, module_state(bad)  # the scan sees every kind
     found = [f for path in sorted(LIBRARY.rglob("*.py")) for f in module_state(path)]
     assert not found, "\n".join(found)
+
+
+def test_tests__start_no_process_with_a_pipe_they_never_read():
+    """A child started with ``subprocess.Popen(..., stdout=PIPE)`` and left running blocks in its
+    next write once the pipe holds 64 KiB (a server then stops answering): tests start long-lived
+    children with ``tests.processes.LoggedProcess`` (a log file), or send the output to a file or
+    DEVNULL. ``subprocess.run`` reads its pipes and is not affected."""
+    found = []
+    for path in sorted((ROOT / "tests").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if not (isinstance(node, ast.Call) and getattr(node.func, "attr", getattr(node.func, "id", "")) == "Popen"):
+                continue
+            for kw in node.keywords:
+                if kw.arg in ("stdout", "stderr") and ast.unparse(kw.value) in ("subprocess.PIPE", "PIPE"):
+                    found.append(f"{path.relative_to(ROOT)}:{node.lineno}")
+    assert not found, f"Popen with an output pipe (use tests.processes.LoggedProcess): {found}"
