@@ -168,6 +168,10 @@ def main() -> None:
         line = server.stdout.readline()
         if "listening" not in line:
             raise SystemExit(f"rollout-server did not start: {line}{server.stdout.read()}")
+        # keep reading what the server writes: a full pipe (64 KiB) would stop it mid-measurement
+        import threading
+
+        threading.Thread(target=server.stdout.read, name="server-output", daemon=True).start()
         target = f"127.0.0.1:{port}"
         streams, asynchronous = [], []
         for n in args.envs:
