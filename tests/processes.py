@@ -14,7 +14,12 @@ import subprocess
 import tempfile
 from pathlib import Path
 
-LOG_FOLDER = Path(tempfile.gettempdir()) / "quicknav-test-processes"
+
+def log_folder() -> Path:
+    """The test run's folder for the logs (``QUICKNAV_TEST_CACHE``, removed with the run's cache),
+    or the system's temporary folder outside a test run."""
+    run = os.environ.get("QUICKNAV_TEST_CACHE")
+    return Path(run) / "processes" if run else Path(tempfile.gettempdir()) / "quicknav-test-processes"
 
 
 class LoggedProcess(subprocess.Popen):
@@ -24,8 +29,9 @@ class LoggedProcess(subprocess.Popen):
         for taken in ("stdout", "stderr", "text", "universal_newlines"):
             if taken in kwargs:
                 raise TypeError(f"LoggedProcess writes the output to a file itself; drop {taken}=")
-        LOG_FOLDER.mkdir(parents=True, exist_ok=True)
-        fd, name = tempfile.mkstemp(prefix="proc-", suffix=".log", dir=LOG_FOLDER)
+        folder = log_folder()
+        folder.mkdir(parents=True, exist_ok=True)
+        fd, name = tempfile.mkstemp(prefix="proc-", suffix=".log", dir=folder)
         self.log_path = Path(name)
         try:
             super().__init__(args, stdout=fd, stderr=subprocess.STDOUT, **kwargs)
@@ -33,7 +39,7 @@ class LoggedProcess(subprocess.Popen):
             os.close(fd)  # the child holds its own copy
 
     def output(self, last: int = 20_000) -> str:
-        """The last ``last`` characters the process wrote so far (all of them when it has ended)."""
+        """The last ``last`` bytes the process wrote so far, as text (all of it once it has ended)."""
         try:
             data = self.log_path.read_bytes()
         except OSError as e:

@@ -17,6 +17,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.axes import Axes
+from matplotlib.colors import to_rgb
 from matplotlib.patches import Circle, FancyArrow
 from PIL import Image
 
@@ -115,6 +116,7 @@ class FrameDrawer:
         if self._walls is None or walls.shape != self._walls.shape or not np.array_equal(walls, self._walls):
             self.room.set_data(walls.astype(float))
             self._walls = walls.copy()
+            self._background_key = None  # a new room: a new background
         goal = np.asarray(snap["goal"], dtype=float)
         self.goal_disc.set_center(goal)
         self.goal_star.set_data([goal[0]], [goal[1]])
@@ -141,7 +143,7 @@ class FrameDrawer:
             self.ax.set_position(self._FULL)
             self.ax.set_title("")
         canvas = self.fig.canvas
-        key = (self._walls.tobytes(), self._walls.shape, tuple(goal), tuple(self.ax.get_position().bounds))
+        key = (tuple(goal), tuple(self.ax.get_position().bounds))  # and the room (reset above)
         if key != self._background_key:
             # the room, the goal and the frame of the axes, drawn once per episode (and layout)
             for artist in self._moving:
@@ -217,8 +219,6 @@ PALETTE_SAMPLE_FRAMES = 16
 def gif_palette(frames: Sequence[np.ndarray]) -> Image.Image:
     """One palette of 255 colours for all ``frames``: Pillow's fast octree over up to 16 frames
     spread over the sequence and a strip of NAMED_COLOURS."""
-    from matplotlib.colors import to_rgb
-
     step = max(1, len(frames) // PALETTE_SAMPLE_FRAMES)
     sample = [np.asarray(f) for f in (*frames[::step], frames[-1])]
     width = sample[0].shape[1]

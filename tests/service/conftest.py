@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import os
 import socket
-import subprocess
 import sys
 import threading
 import time
@@ -22,7 +21,7 @@ from tests.compile_settings import as_a_user_runs
 from tests.processes import LoggedProcess
 
 
-def quicknav_process(args: list[str], as_a_user: bool = False, **env: str) -> subprocess.Popen:
+def quicknav_process(args: list[str], as_a_user: bool = False, **env: str) -> LoggedProcess:
     """`quicknav ARGS` in a child process with QUICKNAV_* ``env`` (and no Redis from outside);
     ``as_a_user``: compiled as a user's machine compiles (``tests/compile_settings.py``), for a
     process that trains more than it compiles."""
