@@ -91,7 +91,7 @@ def main() -> None:
     from quicknav_core.runtime import Runtime
 
     runtime = Runtime()
-    agent, env, _ = agent_from_run(args.run, runtime)
+    agent, env, _ = agent_from_run(args.run)
     fit = fit_map(env, args.map)
     cfg = EnvConfig.model_validate({**env.model_dump(), **fit.env_overrides(args.map), "obstacles": None})
     if args.shield:

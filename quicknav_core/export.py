@@ -172,22 +172,21 @@ def _initial_value(value) -> Any:
 
 # --------------------------------------------------------------------------- a run folder
 def export_run(run_dir: Path, out_dir: Path, provenance: dict[str, Any] | None = None,
-               trainer=None, runtime=None, map_path: str | Path | None = None) -> dict[str, Any]:  # fmt: skip
+               map_path: str | Path | None = None) -> dict[str, Any]:
     """Write ``policy.onnx`` and ``policy.json`` of a run folder's last checkpoint into ``out_dir``
     (checked by onnxruntime against the JAX policy on random observations before returning).
-    ``trainer``: a warm trainer of the run's config (a worker's), which spares building one.
+    The policy is read from the checkpoint without building the run's trainer (``load_policy``).
     ``map_path``: a map the robot drives, written as the policy sees it (``map.npz``, and the
     manifest's ``map``: its frame) for ``quicknav_client.navigate.Navigator``."""
-    from quicknav_core.train.run import load_run
+    from quicknav_core.train.run import load_policy
 
     run_dir, out_dir = Path(run_dir), Path(out_dir)
-    config, trainer, state, meta = load_run(run_dir, trainer, runtime)
+    config, policy, meta = load_policy(run_dir)
     fit = None
     if map_path is not None:
         from quicknav_core.eval.map_fit import fit_map
 
         fit = fit_map(config.env, map_path)  # before the model: a map that cannot be driven fails fast
-    policy = trainer.policy(state)
     model = to_onnx_model(policy, config.env.obs_dim)
     out_dir.mkdir(parents=True, exist_ok=True)
     tmp = out_dir / (ONNX_FILE + ".tmp")

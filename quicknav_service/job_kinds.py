@@ -53,13 +53,13 @@ class TrialSpec(StrictModel):
     sweep: SweepConfig
 
 
-def export_policy(run_dir: Path, provenance: dict[str, Any], trainer=None, runtime=None) -> list[str]:
+def export_policy(run_dir: Path, provenance: dict[str, Any]) -> list[str]:
     """Write a finished train job's ``policy.onnx`` and ``policy.json`` beside its checkpoint; a
     failure is a warning naming the files, never a failed job (the checkpoint is the result)."""
     try:
         from quicknav_core.export import export_run
 
-        export_run(run_dir, run_dir, provenance=provenance, trainer=trainer, runtime=runtime)
+        export_run(run_dir, run_dir, provenance=provenance)
     except Exception as e:  # any failure of the export is reported, none is fatal
         log.warning("job %s: policy export failed", provenance.get("job_id"), exc_info=True)
         return [f"policy.onnx, policy.json: not exported ({type(e).__name__}: {e})"[:500]]
@@ -119,7 +119,7 @@ def train(ctx: JobContext) -> Outcome:
               "warnings": summary["warnings"]}  # fmt: skip
     if stop_reason.get("why", "done") == "done" and ctx.settings.export_policies:
         provenance = {"job_id": job.id, "preset": job.request.get("preset")}
-        exported = export_policy(run_dir, provenance, trainer, ctx.runtime)
+        exported = export_policy(run_dir, provenance)
         result["warnings"] = [*result["warnings"], *exported]
     if summary["total_steps"] != config.total_steps:
         result["note"] = (

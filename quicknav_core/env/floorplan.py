@@ -75,27 +75,40 @@ def _labels(walls: np.ndarray) -> np.ndarray:
     return labels
 
 
+def _door_candidates(labels: np.ndarray, widths: range) -> list[tuple[tuple[int, ...], int, int]]:
+    """Every door candidate as (its cells as flat indices of the grid, region a, region b), a < b.
+    In the order the plans have always used: by width, then doors between left and right regions
+    before doors between upper and lower ones, each in row-major order of its first cell (the
+    order decides which door a plan's random permutation picks, so banks stay what they were)."""
+    g = labels.shape[0]
+    out = []
+    for width in widths:
+        n = g - width + 1  # first cells whose ``width`` cells fit in the grid
+        for vertical in (False, True):
+            lab = labels.T if vertical else labels
+            # a wall cell between two free cells of different regions, left and right of it
+            a, b = lab[:, :-2], lab[:, 2:]
+            ok = (lab[:, 1:-1] == 0) & (a > 0) & (b > 0) & (a != b)
+            run = ok[:n].copy()
+            for k in range(1, width):  # every cell of the door, between the same two regions
+                run &= ok[k:k + n] & (a[k:k + n] == a[:n]) & (b[k:k + n] == b[:n])
+            rows, cols = np.nonzero(run)
+            lo = np.minimum(a[rows, cols], b[rows, cols]).tolist()
+            hi = np.maximum(a[rows, cols], b[rows, cols]).tolist()
+            # in ``lab``'s frame the door runs down rows r.. at column c + 1
+            if vertical:  # lab is the transpose: the door is row c + 1, columns r..
+                first, step = (cols + 1) * g + rows, 1
+            else:
+                first, step = rows * g + cols + 1, g
+            for f, x, y in zip(first.tolist(), lo, hi, strict=True):
+                out.append((tuple(range(f, f + width * step, step)), x, y))
+    return out
+
+
 def _open_doors(walls: np.ndarray, fp: FloorplanConfig, rng: np.random.Generator) -> None:
     labels = _labels(walls)
-    g = walls.shape[0]
-    candidates = []  # (cells of the door, region a, region b)
     widths = range(fp.door_width, (fp.door_width_max or fp.door_width) + 1)
-    for width, vertical in ((w, v) for w in widths for v in (False, True)):
-        lab = labels.T if vertical else labels
-        # a wall cell between two free cells left and right (rows of ``lab``): a door through it
-        a, b = lab[:, :-2], lab[:, 2:]
-        wall = lab[:, 1:-1] == 0
-        ok = wall & (a > 0) & (b > 0) & (a != b)
-        for r, c in zip(*np.nonzero(ok), strict=True):
-            if r + width > g or not ok[r:r + width, c].all():
-                continue
-            pair = (int(a[r, c]), int(b[r, c]))
-            if any((int(a[r + k, c]), int(b[r + k, c])) != pair for k in range(width)):
-                continue
-            cells = [(r + k, c + 1) for k in range(width)]
-            if vertical:
-                cells = [(cc, rr) for rr, cc in cells]
-            candidates.append((cells, *sorted(pair)))
+    candidates = _door_candidates(labels, widths)
     parent = list(range(int(labels.max()) + 1))
 
     def root(i: int) -> int:
@@ -105,21 +118,19 @@ def _open_doors(walls: np.ndarray, fp: FloorplanConfig, rng: np.random.Generator
         return i
 
     joined: set[tuple[int, int]] = set()
-    extra: set[tuple[int, int]] = set()
-    for i in rng.permutation(len(candidates)):
+    opened: set[int] = set()  # cells of the doors opened so far (every candidate cell is a wall)
+    for i in rng.permutation(len(candidates)).tolist():
         cells, a, b = candidates[i]
-        if any(not walls[r, c] for r, c in cells):
+        if not opened.isdisjoint(cells):
             continue  # overlaps a door already open
         ra, rb = root(a), root(b)
         if ra != rb:
             parent[ra] = rb
-        elif (a, b) in joined or (a, b) in extra or rng.random() >= fp.loop_prob:
-            continue
-        else:
-            extra.add((a, b))
+        elif (a, b) in joined or rng.random() >= fp.loop_prob:
+            continue  # a second door between two regions already joined: at most one, by chance
         joined.add((a, b))
-        for r, c in cells:
-            walls[r, c] = False
+        opened.update(cells)
+    walls.flat[sorted(opened)] = False
 
 
 def plan_rng(config: EnvConfig, split: Split, index: int) -> np.random.Generator:

@@ -13,7 +13,6 @@ from pathlib import Path
 from typing import Any
 
 from quicknav_core.config import EnvConfig
-from quicknav_core.runtime import Runtime
 
 
 class Agent:
@@ -59,17 +58,16 @@ class PolicyAgent(Agent):
         return self._policy(payload).act(carry, obs, start, key, deterministic)
 
 
-def agent_from_run(path: Path, runtime: Runtime | None = None
-                   ) -> tuple[Agent, EnvConfig, dict[str, Any]]:  # fmt: skip
+def agent_from_run(path: Path) -> tuple[Agent, EnvConfig, dict[str, Any]]:
     """The trained policy of a run folder (or its checkpoint folder), with the run's env config."""
     from quicknav_core.layout import RunFolder
-    from quicknav_core.train.run import load_run
+    from quicknav_core.train.run import load_policy
 
     run_dir = RunFolder.of(path).path
-    config, trainer, state, meta = load_run(run_dir, runtime=runtime)
+    config, policy, meta = load_policy(run_dir)  # the network and its parameters: no trainer
     return (
         # a run folder named by a job id is shown by its first 8 characters, as the CLI shows ids
-        PolicyAgent(trainer.policy(state), name=f"{config.trainer_kind}:{run_dir.name[:16]}"),
+        PolicyAgent(policy, name=f"{config.trainer_kind}:{run_dir.name[:16]}"),
         config.env,
         meta,
     )

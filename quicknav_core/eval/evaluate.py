@@ -108,7 +108,7 @@ def make_agent(cfg: EvalConfig, run_dir: Path | str | None = None, runtime: Runt
         where = run_dir if run_dir is not None else cfg.source
         if where is None:
             raise ValueError("policy='trained' needs a source: the run folder of the trained policy")
-        agent, run_env, _ = agent_from_run(Path(where), runtime)
+        agent, run_env, _ = agent_from_run(Path(where))
         env = cfg.env or run_env
     return (ShieldedAgent(agent, env) if cfg.shield else agent), env
 

@@ -23,11 +23,14 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from quicknav_core.config import TrainConfig
 from quicknav_core.layout import CHECKPOINT, FORMAT, RUN, CheckpointMeta, RunFolder, digest
 from quicknav_core.runtime import Runtime
+
+if TYPE_CHECKING:  # pragma: no cover
+    from quicknav_core.train.trainers import Policy
 
 # the layout's names, as this module's readers knew them
 CONFIG_FILE, METRICS_FILE, CHECKPOINT_DIR, CURVE_FILE = RUN.config, RUN.metrics, RUN.checkpoint, RUN.curve
@@ -162,6 +165,22 @@ def load_run(run_dir: Path, trainer=None, runtime: Runtime | None = None):
     if "replay" in meta:
         state = trainer.with_replay_bytes(state, (ckpt / REPLAY_FILE).read_bytes())
     return config, trainer, state, meta
+
+
+def load_policy(run_dir: Path) -> tuple[TrainConfig, Policy, dict[str, Any]]:
+    """(config, policy, meta) of a run folder's last checkpoint, without building its trainer:
+    the network and its parameters only (``trainers.policy_from_bytes``), what evaluation, export
+    and the Policy stream need. ``load_run`` is for what continues training."""
+    from quicknav_core.train.trainers import policy_from_bytes
+
+    run_dir = Path(run_dir)
+    config = read_config(run_dir)
+    ckpt = checkpoint_dir(run_dir)
+    if ckpt is None:
+        raise FileNotFoundError(f"{run_dir} has no checkpoint yet, or none that is complete"
+                                f" ({RUN.checkpoint}/{CHECKPOINT.state})")  # fmt: skip
+    meta = read_meta(run_dir)
+    return config, policy_from_bytes(config, (ckpt / STATE_FILE).read_bytes()), meta
 
 
 def read_metrics(run_dir: Path) -> list[dict[str, Any]]:

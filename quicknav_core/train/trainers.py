@@ -327,6 +327,41 @@ def _lacks_a_field(fresh: Any, loaded: Any) -> bool:
     return any(k not in loaded or _lacks_a_field(v, loaded[k]) for k, v in fresh.items())
 
 
+def policy_from_bytes(config: TrainConfig, data: bytes) -> Policy:
+    """The policy of a checkpoint (``Trainer.to_bytes``) of ``config``'s trainer, read without
+    building the trainer: its network (from ``config.network``) and the parameters the state holds
+    for it. Evaluation, export and the Policy stream need nothing else: no room bank, no
+    algorithm, no state traced. A ValueError names an array whose shape the config does not give."""
+    raw = serialization.msgpack_restore(data)
+    obs_dim, key = config.env.obs_dim, jax.random.PRNGKey(0)
+    obs = jnp.zeros((1, obs_dim), jnp.float32)
+    if config.trainer_kind == "recurrent-ppo":
+        module: nn.Module = make_network(config.network, obs_dim=obs_dim)
+        kind, where = "recurrent", ("params",)
+        start = jnp.ones((1,), bool)
+        expected = jax.eval_shape(lambda k: module.init(k, module.initial_carry(1), obs, start), key)
+    else:
+        from quicknav_core.train.rejax_parts import rejax_networks
+
+        module = rejax_networks(config)["actor"]
+        kind, where = config.trainer_kind, ("actor_ts", "params")
+        # rejax's own call: PPO's and SAC's actors take a key after the observations
+        extra = () if kind == "rejax-td3" else (key,)
+        expected = jax.eval_shape(lambda k: module.init(k, obs, *extra), key)
+    params = raw
+    for name in where:
+        if not isinstance(params, dict) or name not in params:
+            raise ValueError(f"checkpoint has no /{'/'.join(where)}: not a {config.trainer_kind}"
+                             " checkpoint of this run's config")  # fmt: skip
+        params = params[name]
+    want = serialization.to_state_dict(expected)
+    _check_shapes(want, params, config, "/" + "/".join(where))
+    if jax.tree.structure(want) != jax.tree.structure(params):
+        raise ValueError(f"checkpoint's /{'/'.join(where)} holds other arrays than this run's"
+                         f" network ({config.network.kind}) has")  # fmt: skip
+    return Policy(kind, module, jax.tree.map(jnp.asarray, params))
+
+
 def _check_shapes(fresh: Any, loaded: Any, config: TrainConfig, path: str = "") -> None:
     """A ValueError naming the first array of a checkpoint whose shape is not what the config's
     network and buffers give (instead of flax failing later, in the middle of an evaluation)."""

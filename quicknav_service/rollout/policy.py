@@ -205,7 +205,7 @@ class PolicyServicer(pb_grpc.PolicyServiceServicer):
     def _build(self, run_dir: Path, job_id: str) -> LoadedPolicy:
         from quicknav_core.admission import PolicyRequest, admit
         from quicknav_core.export import MANIFEST_FILE, manifest
-        from quicknav_core.train.run import load_run, read_config
+        from quicknav_core.train.run import load_policy, read_config
         from quicknav_service.jobs.limits import server_limits
         from quicknav_service.rollout.start import describe
 
@@ -216,8 +216,7 @@ class PolicyServicer(pb_grpc.PolicyServiceServicer):
             code = (grpc.StatusCode.RESOURCE_EXHAUSTED if all(p.get("capacity") for p in problems)
                     else grpc.StatusCode.FAILED_PRECONDITION)  # fmt: skip
             raise Refused(code, f"load.job_id={job_id!r}: " + "; ".join(map(describe, problems)))
-        config, trainer, state, meta = load_run(run_dir, runtime=self.runtime)
-        policy = trainer.policy(state)
+        config, policy, meta = load_policy(run_dir)  # the network and its parameters: no trainer
         path = run_dir / MANIFEST_FILE
         text = path.read_text() if path.exists() else json.dumps(
             manifest(config, policy, meta, {"run": job_id, "job_id": job_id}, None))

@@ -382,7 +382,7 @@ def _policy_episodes(run_dir: Path, req: StartRequest, runtime: Runtime):
     from quicknav_core.config import EvalConfig
     from quicknav_core.eval.evaluate import agent_from_run, run_episodes
 
-    agent, _, _ = agent_from_run(run_dir, runtime)
+    agent, _, _ = agent_from_run(run_dir)
     env, params = req.env.build(req.split, runtime)
     cfg = EvalConfig(episodes=req.num_envs, seed=req.seed % 2**31, deterministic=not req.stochastic,
                      gif_episodes=req.num_envs)  # fmt: skip

@@ -151,3 +151,56 @@ def grid_dijkstra(usable, goal_seeds, step):
                     dist[rr, cc] = nd
                     heapq.heappush(heap, (nd, rr, cc))
     return dist
+
+
+def open_doors_cell_by_cell(walls: np.ndarray, fp, rng: np.random.Generator) -> None:
+    """Floor-plan doors (``quicknav_core.env.floorplan``'s rule), found cell by cell: every wall
+    cell with free cells of two different regions left and right (or above and below) starts a
+    candidate when the ``width`` cells from it along the wall all do, with the same two regions;
+    candidates by width, then horizontal passages before vertical ones, each in row-major order.
+    Taken in a random order, a candidate opens when it joins two regions not yet connected, or,
+    with probability ``loop_prob``, when no door joins its two regions yet."""
+    from scipy import ndimage
+
+    labels, _ = ndimage.label(~walls)
+    g = walls.shape[0]
+    candidates = []  # (cells of the door, smaller region, larger region)
+    for width in range(fp.door_width, (fp.door_width_max or fp.door_width) + 1):
+        for vertical in (False, True):
+            lab = labels.T if vertical else labels
+            for r in range(g):
+                for c in range(g - 2):
+                    run = []
+                    for k in range(width):
+                        if r + k >= g:
+                            break
+                        a, mid, b = lab[r + k, c], lab[r + k, c + 1], lab[r + k, c + 2]
+                        if mid != 0 or a == 0 or b == 0 or a == b:
+                            break
+                        run.append((int(a), int(b)))
+                    if len(run) < width or len(set(run)) != 1:
+                        continue
+                    cells = [(r + k, c + 1) for k in range(width)]
+                    if vertical:
+                        cells = [(cc, rr) for rr, cc in cells]
+                    candidates.append((cells, *sorted(run[0])))
+    parent = list(range(int(labels.max()) + 1))
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            i = parent[i]
+        return i
+
+    joined: set[tuple[int, int]] = set()
+    for i in rng.permutation(len(candidates)):
+        cells, a, b = candidates[i]
+        if any(not walls[r, c] for r, c in cells):
+            continue  # overlaps a door already open
+        ra, rb = root(a), root(b)
+        if ra != rb:
+            parent[ra] = rb
+        elif (a, b) in joined or rng.random() >= fp.loop_prob:
+            continue
+        joined.add((a, b))
+        for r, c in cells:
+            walls[r, c] = False

@@ -55,6 +55,29 @@ def test_floorplan__connected_walled_and_held_out():
     assert not np.array_equal(train, other)
 
 
+@pytest.mark.parametrize("grid,floorplan", [
+    (24, {"door_width": 1, "door_width_max": 2, "corridor_width": 2}),  # the building preset's
+    (16, {}),
+    (32, {"door_width": 2, "door_width_max": 4, "corridor_width": 0, "loop_prob": 1.0}),
+    (20, {"door_width": 3, "corridor_width": 3, "loop_prob": 0.0, "min_room": 3}),
+])
+def test_floorplan__doors_are_those_found_cell_by_cell(monkeypatch, grid, floorplan):
+    """The door search works on whole arrays; the plain search (every wall cell, every width,
+    ``tests/core/env/reference.py``) with the same random draws gives the same plans, so banks
+    stay what they were."""
+    import quicknav_core.env.floorplan as plans
+    from tests.core.env.reference import open_doors_cell_by_cell
+
+    cfg = FLOOR.model_copy(update={"grid_size": grid, "room_size": grid / 2,
+                                   "floorplan": FLOOR.floorplan.model_copy(update=floorplan)})
+    fast = floorplan_bank(cfg, "train", 48)
+    monkeypatch.setattr(plans, "_open_doors", open_doors_cell_by_cell)
+    plain = floorplan_bank(cfg, "train", 48)
+    assert np.array_equal(fast, plain)
+    monkeypatch.setattr(plans, "_open_doors", lambda walls, fp, rng: None)
+    assert (~fast).sum() > (~floorplan_bank(cfg, "train", 48)).sum()  # doors were opened
+
+
 def test_floorplan__rooms_doors_and_a_corridor_look_like_a_floor():
     cfg = FLOOR.model_copy(update={"grid_size": 40, "room_size": 20.0})
     bank = floorplan_bank(cfg, "train", 32)
