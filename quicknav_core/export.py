@@ -63,11 +63,39 @@ def policy_step(policy, obs_dim: int) -> tuple[Any, list[jax.ShapeDtypeStruct], 
     return step, specs, names, ["action"] + [f"next_{n}" for n in state_names]
 
 
+# jax2onnx's plugin trees that QuickNav's policies need: flax linen networks over jax primitives
+PLUGIN_TREES = ("jax", "flax")
+
+
+def import_onnx_plugins() -> None:
+    """Import the jax2onnx plugins a QuickNav policy's conversion uses, and only those.
+
+    On its first conversion jax2onnx imports every module under ``jax2onnx.plugins`` (its
+    ``import_all_plugins``), equinox's plugins and the examples too: ~2 s of every export on a
+    2-core AMD EPYC VM, most of it in the equinox tree, none of it used here. This imports the
+    ``PLUGIN_TREES`` with jax2onnx's own walker and marks the import as done. A jax2onnx without
+    that walker or flag (another version) keeps its own full import. The export's parity check
+    (``check_parity``) and the tests' exports of every network kind hold the conversion to the
+    JAX policy, so a plugin left out would fail there, loudly."""
+    try:
+        from jax2onnx.plugins import plugin_system as plugins
+    except ImportError:  # pragma: no cover - jax2onnx moved it: its own import runs
+        return
+    walk = getattr(plugins, "_import_tree", None)
+    if walk is None or getattr(plugins, "_already_imported_plugins", None) is not False:
+        return  # done already, or a jax2onnx this does not know
+    root = Path(plugins.__file__).parent
+    for tree in PLUGIN_TREES:
+        walk(root / tree, f"jax2onnx.plugins.{tree}")
+    plugins._already_imported_plugins = True
+
+
 def to_onnx_model(policy, obs_dim: int):
     """The ONNX model of a policy's deterministic step, batch axis ``B`` dynamic."""
     from jax import export
     from jax2onnx import to_onnx
 
+    import_onnx_plugins()
     step, specs, names, outputs = policy_step(policy, obs_dim)
     (batch,) = export.symbolic_shape("B")
     inputs = [jax.ShapeDtypeStruct((batch, *s.shape[1:]), s.dtype) for s in specs]

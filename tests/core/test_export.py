@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import itertools
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -126,3 +128,22 @@ def test_export__held_out_success_joins_the_manifest_only_from_the_trained_env(t
     held = json.loads((tmp_path / ex.MANIFEST_FILE).read_text())["held_out"]
     assert held == {"eval_job_id": "e", "episodes": 100, "success_rate": 0.97,
                     "success_ci95": [0.9, 0.99], "spl": 0.9}  # fmt: skip
+
+
+def test_export__imports_only_the_converters_plugins_for_flax_and_jax():
+    """The first conversion imports jax2onnx's jax and flax plugins, not its equinox plugins and
+    examples (seconds of every export, none of them used); a conversion after it still works (the
+    module fixture's exports of every network kind check that it is the JAX policy)."""
+    code = (
+        "import sys\n"
+        "from quicknav_core.export import import_onnx_plugins\n"
+        "from jax2onnx.plugins import plugin_system\n"
+        "import_onnx_plugins()\n"
+        "print(plugin_system._already_imported_plugins,"
+        " 'jax2onnx.plugins.flax.linen.dense' in sys.modules,"
+        " any(m.startswith(('jax2onnx.plugins.equinox', 'jax2onnx.plugins.examples'))"
+        " for m in sys.modules))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["True", "True", "False"], out.stdout
