@@ -147,18 +147,22 @@ def read_meta(run_dir: Path) -> dict[str, Any]:
     return json.loads(meta.to_json())
 
 
-def load_run(run_dir: Path, trainer=None, runtime: Runtime | None = None):
-    """(config, trainer, state, meta) of a run folder's last checkpoint (``trainer``: a warm one;
-    else one made in ``runtime``)."""
-    from quicknav_core.train.trainers import make_trainer
-
-    run_dir = Path(run_dir)
+def _last_checkpoint(run_dir: Path) -> tuple[TrainConfig, Path, dict[str, Any]]:
+    """(config, checkpoint folder, meta) of a run folder's last complete checkpoint."""
     config = read_config(run_dir)
     ckpt = checkpoint_dir(run_dir)
     if ckpt is None:
         raise FileNotFoundError(f"{run_dir} has no checkpoint yet, or none that is complete"
                                 f" ({RUN.checkpoint}/{CHECKPOINT.state})")  # fmt: skip
-    meta = read_meta(run_dir)
+    return config, ckpt, read_meta(run_dir)
+
+
+def load_run(run_dir: Path, trainer=None, runtime: Runtime | None = None):
+    """(config, trainer, state, meta) of a run folder's last checkpoint (``trainer``: a warm one;
+    else one made in ``runtime``)."""
+    from quicknav_core.train.trainers import make_trainer
+
+    config, ckpt, meta = _last_checkpoint(Path(run_dir))
     trainer = (trainer if trainer is not None and trainer.config == config
                else make_trainer(config, runtime))  # fmt: skip
     state = trainer.from_bytes((ckpt / STATE_FILE).read_bytes())
@@ -173,13 +177,7 @@ def load_policy(run_dir: Path) -> tuple[TrainConfig, Policy, dict[str, Any]]:
     and the Policy stream need. ``load_run`` is for what continues training."""
     from quicknav_core.train.trainers import policy_from_bytes
 
-    run_dir = Path(run_dir)
-    config = read_config(run_dir)
-    ckpt = checkpoint_dir(run_dir)
-    if ckpt is None:
-        raise FileNotFoundError(f"{run_dir} has no checkpoint yet, or none that is complete"
-                                f" ({RUN.checkpoint}/{CHECKPOINT.state})")  # fmt: skip
-    meta = read_meta(run_dir)
+    config, ckpt, meta = _last_checkpoint(Path(run_dir))
     return config, policy_from_bytes(config, (ckpt / STATE_FILE).read_bytes()), meta
 
 
