@@ -5,7 +5,7 @@ The parts that grow with the config: the replay buffer of SAC/TD3 (``buffer_size
 two observations, an action, a reward and a done flag), the room banks, the env batch, PPO's
 rollout, the networks, and, for an evaluation, every episode's trajectory and its planner's fields.
 Factors were measured on this project's CPU VM (peak RSS of a process that trains as a worker
-does, ``quicknav_core.bench.memory``): 915-1,190 MB for the interpreter, JAX and the compiled
+does, ``quicknav_core.bench.memory``): 810-1,110 MB for the interpreter, JAX and the compiled
 programs depending on the trainer and network, and about 2.7 bytes of peak for each byte of replay buffer
 (the buffer lives once in the train state, once more while a compiled unit writes its output, and
 once more while a checkpoint is serialised).
@@ -24,25 +24,28 @@ MB = 2**20
 RUNTIME_BYTES = 900 * MB  # python, jax, xla, compiled programs: a rollout stream, a policy server
 # an evaluation's: what its peak holds beside the banks, the episodes and the plans (inferred as
 # 760-775 MB: random-policy evaluations' peaks at grids 45 and 103, 876 and 908 MB, less the
-# other parts as estimated)
-EVAL_RUNTIME_BYTES = 780 * MB
+# other parts as estimated; then 30-80 MB less once processes stopped importing seaborn
+# (``deferred_imports``): the oracle's evaluations at grids 45, 103 and 203 measured 971 -> 932,
+# 1,196 -> 1,166 and 2,466 -> 2,387 MB, 2-core AMD EPYC VM)
+EVAL_RUNTIME_BYTES = 745 * MB
 # Python, JAX, XLA and the compiled programs of a training run, by trainer and network: the peak
 # of compiling them differs (GTrXL's attention programs take the most). Measured on this project's
 # CPU VM with `python -m quicknav_core.bench.memory` (peak RSS of a process that trains a few
 # chunks and writes checkpoints, as a worker does, compiling every program), at two sizes each;
-# README has the table. The same case measures up to 6 % apart from run to run (lstm-1024: 1,015
-# and 956 MB; sac-100k: 1,185-1,235 MB), so each sits near the middle of its measurements. GTrXL
-# at 2,048 envs measured 1,336 MB (AMD EPYC, recorded), 1,244 MB (a CI run on the same kind) and
-# 1,377 MB (three runs on an Intel Xeon VM): its constant sits in the middle of that range. PPO
-# with the MLP peaks higher on the Intel Xeon VM than on the AMD EPYC one (2,048 envs: 1,012 and
-# 1,047 MB against 937; 256 envs: 933 against 872), so its constant sits between the two.
+# README has the table. The same case measures up to 6 % apart from run to run (lstm-1024: 888
+# and 918 MB; mlp-memory-1024: 825-865 MB), so each sits near the middle of its measurements.
+# Re-measured in 2026-11 once the processes stopped importing seaborn, pandas and scipy.stats
+# (``deferred_imports``): 60-150 MB lower per case than before (2-core AMD EPYC VM). Before that,
+# GTrXL at 2,048 envs measured 1,336 MB on that VM and 1,377 MB on an Intel Xeon VM, and PPO with
+# the MLP 7-12 % higher on the Intel VM than on the AMD one: the GTrXL and PPO constants keep a
+# margin for that (unmeasured since).
 TRAIN_RUNTIME_BYTES = {
-    "rejax-ppo": 915 * MB,
-    "rejax-sac": 1100 * MB,
-    "rejax-td3": 980 * MB,
-    "recurrent-mlp": 940 * MB,
-    "recurrent-lstm": 960 * MB,
-    "recurrent-gtrxl": 1190 * MB,
+    "rejax-ppo": 885 * MB,
+    "rejax-sac": 1010 * MB,
+    "rejax-td3": 915 * MB,
+    "recurrent-mlp": 810 * MB,
+    "recurrent-lstm": 860 * MB,
+    "recurrent-gtrxl": 1110 * MB,
 }
 REPLAY_FACTOR = 2.85  # peak bytes per replay-buffer byte (measured 2.69 for SAC and TD3; a margin)
 TRANSIENT_FACTOR = 2.0  # inputs and outputs of a compiled call alive together
