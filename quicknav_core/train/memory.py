@@ -24,10 +24,12 @@ MB = 2**20
 RUNTIME_BYTES = 900 * MB  # python, jax, xla, compiled programs: a rollout stream, a policy server
 # an evaluation's: what its peak holds beside the banks, the episodes and the plans (inferred as
 # 760-775 MB: random-policy evaluations' peaks at grids 45 and 103, 876 and 908 MB, less the
-# other parts as estimated; then 30-80 MB less once processes stopped importing seaborn
-# (``deferred_imports``): the oracle's evaluations at grids 45, 103 and 203 measured 971 -> 932,
-# 1,196 -> 1,166 and 2,466 -> 2,387 MB, 2-core AMD EPYC VM)
-EVAL_RUNTIME_BYTES = 745 * MB
+# other parts as estimated). Lowered in 2026-11 once evaluations stopped importing seaborn
+# (``deferred_imports``) and scipy.stats (``eval.aggregate`` imports it where a statistic is
+# computed): the oracle's evaluations at grids 45, 103 and 203 measured 971 -> 839,
+# 1,196 -> 1,104 and 2,466 -> 2,388 MB (2-core AMD EPYC VM; the largest one's peak, where the
+# plans weigh most, moved least), so the constant sits where all three are within -3/+10 %
+EVAL_RUNTIME_BYTES = 685 * MB
 # Python, JAX, XLA and the compiled programs of a training run, by trainer and network: the peak
 # of compiling them differs (GTrXL's attention programs take the most). Measured on this project's
 # CPU VM with `python -m quicknav_core.bench.memory` (peak RSS of a process that trains a few

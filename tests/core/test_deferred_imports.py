@@ -1,5 +1,6 @@
 """QuickNav defers seaborn (imported by gymnax's Pong, never used by QuickNav): building an env
-does not import it, and a user's own seaborn still works in the same process."""
+does not import it, and a user's own seaborn still works in the same process. The evaluation
+imports scipy.stats only where it computes a statistic (``eval.aggregate``)."""
 
 from __future__ import annotations
 
@@ -19,12 +20,13 @@ def _run(code: str) -> str:
     return out.stdout
 
 
-def test_deferred__building_an_env_imports_neither_seaborn_nor_scipy_stats():
+def test_deferred__building_an_env_or_importing_the_eval_imports_neither_seaborn_nor_scipy_stats():
     out = _run("""
         import sys
         from quicknav_core.config import EnvConfig
         import gymnax.environments.misc.pong  # the module that imports seaborn
         env, params = EnvConfig(grid_size=8).build("train")
+        from quicknav_core.eval.evaluate import run_eval  # statistics import scipy.stats when used
         print(type(sys.modules["seaborn"]).__name__, "scipy.stats" in sys.modules,
               "pandas" in sys.modules)
     """)
