@@ -24,8 +24,8 @@ RESAMPLES = 2000
 
 def _stats():
     """``scipy.stats``, imported where a statistic is computed: ~0.45 s and ~40 MB that every
-    process importing the evaluation (which draws its pictures with this module's neighbours) would
-    otherwise pay without computing any (2-core AMD EPYC VM)."""
+    process importing the evaluation (``eval.pictures`` imports this module) would otherwise pay
+    without computing any (2-core AMD EPYC VM)."""
     from scipy import stats
 
     return stats
