@@ -2,7 +2,9 @@
 admits jobs by) beside the peak RSS of a process that runs it as a worker does (build, compile,
 train a few chunks, write checkpoints), for every network kind and algorithm at two sizes; and
 evaluations on maps from 45 to 203 cells a side (``EVAL_CASES``: 100 episodes of a baseline with
-the building preset's sensors, its pictures written, as an eval job runs).
+the building preset's sensors, its pictures written, as an eval job runs); and the gRPC server's
+streams: a Rollout stream of a few to many envs (``ROLLOUT_CASES``) and a Policy stream of every
+network kind acting for one stream's most robots (``POLICY_CASES``).
 
     uv run python -m quicknav_core.bench.memory [--out benchmarks/results/memory.json] [--case NAME]
 
@@ -10,7 +12,8 @@ Each case runs in a fresh process (``peak_rss`` reads its ``ru_maxrss``); ``test
 test_memory_admission.py`` holds every training case's estimate to within 10 % of its recorded
 measurement and, in the slow suite, measures the larger size of each kind again; README quotes the
 tables. The large evaluations take long (about half an hour at grid 203 on 2 cores): benchmark only;
-``tests/core/train/test_eval_memory.py`` holds the estimate to their recorded measurements.
+``tests/core/train/test_eval_memory.py`` holds the estimate to their recorded measurements, and
+``tests/core/train/test_stream_memory.py`` the streams' estimates to theirs.
 """
 
 from __future__ import annotations
@@ -49,6 +52,71 @@ EVAL_CASES: tuple[tuple[str, str, float, str], ...] = (
     ("eval-warehouse-0.25m-oracle", "examples/maps/slam/warehouse.yaml", 0.25, "oracle"),
 )
 EVAL_EPISODES = 100
+
+# (case, preset, envs): a gRPC Rollout stream of the preset's env (the demo's small rooms; the
+# building preset's plan and people), at a few and at many envs
+ROLLOUT_CASES: tuple[tuple[str, str, int], ...] = (
+    ("rollout-demo-64", "demo", 64),
+    ("rollout-demo-4096", "demo", 4096),
+    ("rollout-demo-16384", "demo", 16384),
+    ("rollout-building-256", "building", 256),
+    ("rollout-building-4096", "building", 4096),
+)
+ROLLOUT_STEPS = 20
+# each stream case runs twice and the higher peak counts: the same rollout case read 468 and 513 MB
+# in two runs (XLA compiles in threads, and how their work overlaps varies), and admission must
+# cover the higher
+STREAM_RUNS = 2
+
+# (case, preset): a Policy stream serving a policy of every network kind (trained a few updates,
+# as a job's run folder holds it), acting for one stream's most robots (POLICY_MAX_ROWS)
+POLICY_CASES: tuple[tuple[str, str], ...] = (
+    ("policy-demo-mlp", "demo"),
+    ("policy-building-mlp", "building"),
+    ("policy-mlp-memory", "paper-mlp"),
+    ("policy-lstm", "paper-lstm"),
+    ("policy-gtrxl", "paper-gtrxl"),
+)
+
+# both import what the gRPC server's process imports (quicknav_service.rollout.server) before
+# doing what one stream does: build and step the envs (the servicer's BatchedEnv), or load the
+# run's policy and act (the Policy servicer's LoadedPolicy and its batcher's jitted act)
+_ROLLOUT_CHILD = """
+import json, resource, sys
+import numpy as np
+import quicknav_service.rollout.server  # noqa: F401
+from quicknav_core.config import EnvConfig
+from quicknav_core.env.batch import BatchedEnv
+from quicknav_core.runtime import Runtime
+case = json.loads(sys.argv[1])
+env = BatchedEnv(EnvConfig.model_validate(case["env"]), case["num_envs"], seed=0, split="train",
+                 runtime=Runtime())
+env.reset()
+rng = np.random.default_rng(0)
+for _ in range(case["steps"]):
+    env.step(rng.uniform(-1.0, 1.0, (case["num_envs"], 2)).astype(np.float32))
+print(json.dumps({"peak_rss": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024}))
+"""
+
+_POLICY_CHILD = """
+import json, resource, sys
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+import numpy as np
+import quicknav_service.rollout.server  # noqa: F401
+from quicknav_core.train.run import load_policy
+from quicknav_service.rollout.policy import LoadedPolicy
+case = json.loads(sys.argv[1])
+config, policy, meta = load_policy(Path(case["run_dir"]))
+rows, obs_dim = case["rows"], config.env.obs_dim
+loaded = LoadedPolicy(policy, obs_dim, "{}", ThreadPoolExecutor(1))
+carry = loaded.initial(rows)
+rng = np.random.default_rng(0)
+for i in range(5):
+    obs = rng.uniform(-1.0, 1.0, (rows, obs_dim)).astype(np.float32)
+    [(carry, actions)] = loaded._run([(carry, obs, np.full(rows, i == 0))])
+print(json.dumps({"peak_rss": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024}))
+"""
 
 _EVAL_CHILD = """
 import json, resource, sys, tempfile
@@ -129,6 +197,65 @@ def eval_peak_rss(cfg) -> int:
     return _child_peak(_EVAL_CHILD, cfg.model_dump_json(), None, timeout=7200)
 
 
+def rollout_case(preset: str, num_envs: int) -> dict[str, Any]:
+    """What a Rollout case's process is given: the preset's env and the stream's envs."""
+    from quicknav_core.config import resolve_train
+
+    env = resolve_train({"preset": preset}).env
+    return {"env": env.model_dump(mode="json"), "num_envs": num_envs, "steps": ROLLOUT_STEPS}
+
+
+def run_rollout_cases(cases=ROLLOUT_CASES) -> list[dict[str, Any]]:
+    from quicknav_core.config import EnvConfig
+    from quicknav_core.train.memory import rollout_memory
+
+    rows = []
+    for name, preset, num_envs in cases:
+        case = rollout_case(preset, num_envs)
+        est = rollout_memory(EnvConfig.model_validate(case["env"]), num_envs)
+        runs = [_child_peak(_ROLLOUT_CHILD, json.dumps(case), None, timeout=1800) for _ in range(STREAM_RUNS)]
+        rows.append(_row(name, {"preset": preset, "num_envs": num_envs}, est, runs))
+    return rows
+
+
+def policy_run(preset: str, run_dir: Path) -> Path:
+    """A run folder of ``preset`` trained a few updates (a fresh process, its own compiles)."""
+    script = ("import sys; from quicknav_core.config import resolve_train; from quicknav_core.train.run"
+              " import train_run; train_run(resolve_train({'preset': sys.argv[1], 'overrides':"
+              " {'num_envs': 64, 'total_steps': 4096}}), sys.argv[2])")  # fmt: skip
+    done = subprocess.run([sys.executable, "-c", script, preset, str(run_dir)], capture_output=True,
+                          text=True, timeout=1800)  # fmt: skip
+    if done.returncode != 0:
+        raise RuntimeError(f"training {preset} failed:\n{done.stderr[-3000:]}")
+    return run_dir
+
+
+def run_policy_cases(cases=POLICY_CASES) -> list[dict[str, Any]]:
+    from quicknav_core.config import resolve_train
+    from quicknav_core.train.memory import POLICY_MAX_ROWS, policy_memory
+
+    rows = []
+    with tempfile.TemporaryDirectory() as runs:
+        for name, preset in cases:
+            run_dir = policy_run(preset, Path(runs) / name)
+            est = policy_memory(resolve_train({"preset": preset}))
+            case = {"run_dir": str(run_dir), "rows": POLICY_MAX_ROWS}
+            runs = [_child_peak(_POLICY_CHILD, json.dumps(case), None, timeout=1800)
+                    for _ in range(STREAM_RUNS)]  # fmt: skip
+            rows.append(_row(name, {"preset": preset, "rows": POLICY_MAX_ROWS}, est, runs))
+    return rows
+
+
+def _row(name: str, what: dict[str, Any], est, runs: list[int]) -> dict[str, Any]:
+    measured = max(runs)
+    print(f"{name:<28} estimate {est.total / MB:7.0f} MB  measured {measured / MB:7.0f} MB"
+          f"  ratio {est.total / measured:.2f}", flush=True)
+    return {"case": name, **what, "estimate_mb": round(est.total / MB),
+            "estimate_parts": est.describe(), "measured_mb": round(measured / MB),
+            "measured_runs_mb": [round(r / MB) for r in runs],
+            "ratio": round(est.total / measured, 3)}  # fmt: skip
+
+
 def estimate(request: dict[str, Any]) -> int:
     from quicknav_core.config import resolve_train
     from quicknav_core.train.memory import train_memory
@@ -178,7 +305,10 @@ def main() -> None:
     args = ap.parse_args()
     chosen = [c for c in CASES if not args.case or c[0] in args.case]
     evals = [c for c in EVAL_CASES if not args.case or c[0] in args.case]
+    rollouts = [c for c in ROLLOUT_CASES if not args.case or c[0] in args.case]
+    policies = [c for c in POLICY_CASES if not args.case or c[0] in args.case]
     rows, eval_rows = run(chosen), run_eval_cases(evals)
+    rollout_rows, policy_rows = run_rollout_cases(rollouts), run_policy_cases(policies)
     # a run of some cases keeps the others' rows (the large evaluations take long)
     kept = json.loads(args.out.read_text()) if args.case and args.out.exists() else {}
 
@@ -189,7 +319,11 @@ def main() -> None:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({"machine": machine_info(),
                                     "rows": merged(kept.get("rows", []), rows, CASES),
-                                    "eval_rows": merged(kept.get("eval_rows", []), eval_rows, EVAL_CASES)},
+                                    "eval_rows": merged(kept.get("eval_rows", []), eval_rows, EVAL_CASES),
+                                    "rollout_rows": merged(kept.get("rollout_rows", []), rollout_rows,
+                                                           ROLLOUT_CASES),
+                                    "policy_rows": merged(kept.get("policy_rows", []), policy_rows,
+                                                          POLICY_CASES)},
                                    indent=2))  # fmt: skip
     print(f"wrote {args.out}")
 

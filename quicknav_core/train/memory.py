@@ -21,7 +21,22 @@ from quicknav_core.config import EnvConfig, EvalConfig, PPOConfig, SweepConfig, 
 from quicknav_core.config.eval import EVAL_BATCH, plan_batch
 
 MB = 2**20
-RUNTIME_BYTES = 900 * MB  # python, jax, xla, compiled programs: a rollout stream, a policy server
+# a gRPC server's Rollout stream (python, jax, grpc, the env's compiled programs): measured with
+# `python -m quicknav_core.bench.memory` (a fresh process with the server's imports that builds the
+# stream's envs and steps them, compiling every program). The plan's programs (``observe_plan``)
+# weigh ~80 MB more to compile; a batch of envs peaks at about six times its states and
+# observations (XLA's buffers for the step's inputs, outputs and temporaries: measured slopes of
+# 5.0 KB per demo env and 27 KB per building env against 0.8 and 4.7 KB of state and observation)
+ROLLOUT_RUNTIME_BYTES = 525 * MB
+ROLLOUT_PLAN_BYTES = 80 * MB
+ROLLOUT_BATCH_FACTOR = 6.0
+# a Policy stream's (python, jax, grpc, the loaded network and its compiled act), by network kind
+# (GTrXL's attention programs weigh most to compile), measured as above with a policy acting for 8
+# rows; what acting for POLICY_MAX_ROWS rows adds follows ``policy_row_floats`` at about five times
+# the floats it counts (measured 11-78 MB at 4,096 rows)
+POLICY_RUNTIME_BYTES = {"mlp": 340 * MB, "lstm": 335 * MB, "gtrxl": 390 * MB}
+POLICY_ROW_FACTOR = 5.0
+POLICY_MAX_ROWS = 4096  # robots one Policy stream may act for (``load.rows``)
 # an evaluation's: what its peak holds beside the banks, the episodes and the plans (inferred as
 # 760-775 MB: random-policy evaluations' peaks at grids 45 and 103, 876 and 908 MB, less the
 # other parts as estimated). Lowered in 2026-11 once evaluations stopped importing seaborn
@@ -128,7 +143,7 @@ def train_memory(cfg: TrainConfig, trials: int = 1) -> Estimate:
     if family == "recurrent-ppo":
         family = f"recurrent-{cfg.network.kind}"
     parts = {
-        "runtime": TRAIN_RUNTIME_BYTES.get(family, RUNTIME_BYTES),
+        "runtime": TRAIN_RUNTIME_BYTES.get(family, max(TRAIN_RUNTIME_BYTES.values())),
         "room banks": 2 * bank_bytes(env, "train"),  # the bank, and a copy while it is built
         "env batch": int(TRANSIENT_FACTOR * trials * cfg.num_envs * (env_state_bytes(env) + obs * 8)),
         "networks": int(trials * network_params(cfg) * 4 * 6),  # params, grads, adam moments, targets
@@ -184,20 +199,38 @@ def eval_memory(cfg: EvalConfig) -> Estimate:
 
 
 def rollout_memory(env: EnvConfig, num_envs: int, split: str = "train") -> Estimate:
-    """Peak memory of a gRPC Rollout stream: the banks, and ``num_envs`` envs stepped together
-    (states, observations and final observations, in and out of each step)."""
+    """Peak memory of a gRPC Rollout stream: the server's runtime, the banks, and ``num_envs``
+    envs stepped together (states, observations and final observations, in and out of each step)."""
     parts = {
-        "runtime": RUNTIME_BYTES,
+        "runtime": ROLLOUT_RUNTIME_BYTES + (ROLLOUT_PLAN_BYTES if env.observe_plan else 0),
         "room banks": 2 * bank_bytes(env, split),
-        "env batch": int(TRANSIENT_FACTOR * num_envs * (env_state_bytes(env) + 2 * env.obs_dim * 4)),
+        "env batch": int(ROLLOUT_BATCH_FACTOR * num_envs * (env_state_bytes(env) + 2 * env.obs_dim * 4)),
     }
     return Estimate(parts, {"room banks": f"{split}_rooms", "env batch": "num_envs"})
 
 
-def policy_memory(cfg: TrainConfig) -> Estimate:
-    """Peak memory of serving a trained policy (the Policy stream): its networks, no envs."""
-    parts = {"runtime": RUNTIME_BYTES, "networks": int(network_params(cfg) * 4 * 2)}
-    return Estimate(parts, {"networks": "network"})
+def policy_row_floats(cfg: TrainConfig) -> int:
+    """Floats one row of a policy's act holds: its observation (every frame), its carry, and its
+    widest activations (an MLP's hidden layers, an LSTM's gates, GTrXL's memory and its keys and
+    values with the attention scores)."""
+    obs, net = cfg.env.obs_dim, cfg.network
+    if net.kind == "mlp":
+        return obs * net.frames + 2 * net.memory_size + sum(net.hidden_sizes)
+    if net.kind == "lstm":
+        return obs + 6 * net.num_layers * net.hidden_size
+    span = net.memory_length + 1
+    return obs + net.num_layers * span * (2 * net.embed_size + net.num_heads)
+
+
+def policy_memory(cfg: TrainConfig, rows: int = POLICY_MAX_ROWS) -> Estimate:
+    """Peak memory of serving a trained policy (the Policy stream): the server's runtime for its
+    network kind, its networks, and acting for ``rows`` robots at once (one stream's most)."""
+    parts = {
+        "runtime": POLICY_RUNTIME_BYTES[cfg.network.kind],
+        "networks": int(network_params(cfg) * 4 * 2),
+        "rows": int(POLICY_ROW_FACTOR * rows * policy_row_floats(cfg) * 4),
+    }
+    return Estimate(parts, {"networks": "network", "rows": "network"})
 
 
 def megabytes(n: int) -> int:

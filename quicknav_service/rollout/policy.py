@@ -25,6 +25,7 @@ from quicknav_client.proto.quicknav.v1 import rollout_pb2_grpc as pb_grpc
 from quicknav_client.tensors import TensorError, decode, encode
 
 from quicknav_core.runtime import Runtime
+from quicknav_core.train.memory import POLICY_MAX_ROWS
 from quicknav_service import auth
 from quicknav_service.rollout.common import (
     Refused,
@@ -38,7 +39,7 @@ from quicknav_service.settings import Settings
 
 log = logging.getLogger("quicknav.policy")
 
-MAX_ROWS = 4096  # robots one stream may act for
+MAX_ROWS = POLICY_MAX_ROWS  # robots one stream may act for (admission counts a full stream)
 
 
 def _padded(n: int) -> int:

@@ -1,0 +1,62 @@
+"""Admission of the gRPC server's streams against their measured peaks: the estimate of a Rollout
+stream (``rollout_memory``) and of a Policy stream (``policy_memory``) for every case of
+``quicknav_core.bench.memory`` is within 10 % of the peak RSS the benchmark measured (a fresh
+process with the server's imports doing what one stream does, compiling every program).
+
+The measurements are the benchmark's; this test holds the estimates to them, so a change of the
+formula that drifts from what was measured fails here. Before they were measured, both streams
+were admitted by one 900 MB guess, 1.3-2.6 times what they took."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from quicknav_core.bench.memory import POLICY_CASES, ROLLOUT_CASES, rollout_case
+from quicknav_core.config import EnvConfig, resolve_train
+from quicknav_core.train.memory import MB, POLICY_MAX_ROWS, policy_memory, rollout_memory
+from tests.journeys.readme import ROOT
+
+RESULTS = json.loads((ROOT / "benchmarks/results/memory.json").read_text())
+ROLLOUTS = {r["case"]: r for r in RESULTS["rollout_rows"]}
+POLICIES = {r["case"]: r for r in RESULTS["policy_rows"]}
+
+
+def _check(name: str, est, measured_mb: int) -> None:
+    ratio = est.total / (measured_mb * MB)
+    assert 0.9 <= ratio <= 1.1, f"{name}: estimate {est.describe()}; measured {measured_mb} MB (ratio {ratio:.2f})"
+
+
+def test_stream_admission__every_case_has_been_measured():
+    assert set(ROLLOUTS) == {c[0] for c in ROLLOUT_CASES}
+    assert set(POLICIES) == {c[0] for c in POLICY_CASES}
+    # a policy of every network kind, and rollouts with and without the plan's programs
+    assert {resolve_train({"preset": p}).network.kind for _, p in POLICY_CASES} == {"mlp", "lstm", "gtrxl"}
+    assert {resolve_train({"preset": p}).env.observe_plan for _, p, _ in ROLLOUT_CASES} == {True, False}
+
+
+@pytest.mark.parametrize("name,preset,num_envs", ROLLOUT_CASES, ids=[c[0] for c in ROLLOUT_CASES])
+def test_rollout_admission__estimate_within_ten_percent_of_the_measured_peak(name, preset, num_envs):
+    row = ROLLOUTS[name]
+    assert (row["preset"], row["num_envs"]) == (preset, num_envs), row  # the case that was measured
+    env = EnvConfig.model_validate(rollout_case(preset, num_envs)["env"])
+    _check(name, rollout_memory(env, num_envs), row["measured_mb"])
+
+
+@pytest.mark.parametrize("name,preset", POLICY_CASES, ids=[c[0] for c in POLICY_CASES])
+def test_policy_admission__estimate_within_ten_percent_of_the_measured_peak(name, preset):
+    row = POLICIES[name]
+    assert (row["preset"], row["rows"]) == (preset, POLICY_MAX_ROWS), row
+    _check(name, policy_memory(resolve_train({"preset": preset})), row["measured_mb"])
+
+
+def test_policy_admission__counts_one_streams_most_rows():
+    """The server refuses ``load.rows`` above POLICY_MAX_ROWS; the estimate the Policy stream is
+    admitted by is the one for that many rows, and grows with them."""
+    from quicknav_service.rollout.policy import MAX_ROWS
+
+    cfg = resolve_train({"preset": "paper-gtrxl"})
+    assert MAX_ROWS == POLICY_MAX_ROWS
+    assert policy_memory(cfg).total == policy_memory(cfg, POLICY_MAX_ROWS).total
+    assert policy_memory(cfg, 8).total < policy_memory(cfg).total
