@@ -51,11 +51,17 @@ def _padded(n: int) -> int:
 class LoadedPolicy:
     """One job's policy with its batcher: the jitted act and the queue of waiting requests."""
 
-    def __init__(self, policy, obs_dim: int, manifest_json: str, executor: ThreadPoolExecutor):
+    def __init__(self, policy, obs_dim: int, manifest_json: str, executor: ThreadPoolExecutor,
+                 max_rows: int = MAX_ROWS):  # fmt: skip
         import jax
 
         self.policy, self.obs_dim, self.manifest_json = policy, obs_dim, manifest_json
         self.executor = executor
+        # rows of one jitted call: the requests waiting together are split into calls of at most
+        # this many (one stream's most), so a server with many streams holds what admission
+        # counted for one (``policy_memory``), not their sum
+        self.max_rows = max_rows
+        self.largest_call = 0  # rows of the largest call made, padding included
         self._act = jax.jit(lambda carry, obs, start: policy.act(carry, obs, start, None, True))
         self._pending: list[tuple[Any, np.ndarray, np.ndarray, asyncio.Future]] = []
         self._running = False
@@ -81,7 +87,10 @@ class LoadedPolicy:
         try:
             while self._pending:
                 await asyncio.sleep(0)  # let the requests of this loop iteration join the batch
-                batch, self._pending = self._pending, []
+                batch, rows = [], 0
+                while self._pending and (not batch or rows + len(self._pending[0][1]) <= self.max_rows):
+                    batch.append(self._pending.pop(0))
+                    rows += len(batch[-1][1])
                 try:
                     results = await asyncio.get_running_loop().run_in_executor(
                         self.executor, self._run, [(c, o, s) for c, o, s, _ in batch])
@@ -110,6 +119,7 @@ class LoadedPolicy:
         start = np.concatenate([s for _, _, s in batch] + [np.ones(pad, bool)])
         new_carry, actions = jax.device_get(self._act(carry, obs, start))
         self.batches += 1
+        self.largest_call = max(self.largest_call, n + pad)
         out, at = [], 0
         for size in sizes:
             part = jax.tree.map(lambda x, a=at, b=at + size: x[a:b], new_carry)

@@ -115,6 +115,34 @@ def test_policy_batcher__requests_of_one_loop_tick_run_as_one_call(served):
             np.testing.assert_allclose(a, np.asarray(b), atol=1e-6)
 
 
+def test_policy_batcher__streams_waiting_together_are_split_into_calls_of_at_most_max_rows(served):
+    """Many streams' requests at once never make one call larger than one stream's most rows (the
+    memory admission counted): four requests of 4, 2, 4 and 8 rows with a cap of 8 are three calls
+    (6, 4 and 8 rows), and each stream still gets exactly what it would have got alone."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from quicknav_service.rollout.policy import MAX_ROWS, LoadedPolicy
+
+    _, config, policy = served
+    assert LoadedPolicy(policy, config.env.obs_dim, "{}", ThreadPoolExecutor(1)).max_rows == MAX_ROWS
+    loaded = LoadedPolicy(policy, config.env.obs_dim, "{}", ThreadPoolExecutor(1), max_rows=8)
+    sizes = (4, 2, 4, 8)
+    obs = [random_observations(config.env, n, seed=i) for i, n in enumerate(sizes)]
+    starts = [np.ones(n, bool) for n in sizes]
+
+    async def together():
+        carries = [loaded.initial(n) for n in sizes]
+        return await asyncio.gather(*(loaded.act(c, o, s) for c, o, s in zip(carries, obs, starts, strict=True)))
+
+    results = asyncio.run(together())
+    assert (loaded.batches, loaded.requests, loaded.largest_call) == (3, 4, 8)
+    for (carry, actions), o, s, n in zip(results, obs, starts, sizes, strict=True):
+        want_carry, want = policy.act(policy.initial_carry(n), o, s, None, True)
+        np.testing.assert_allclose(actions, np.asarray(want), atol=1e-6)
+        for a, b in zip(jax.tree.leaves(carry), jax.tree.leaves(want_carry), strict=True):
+            np.testing.assert_allclose(a, np.asarray(b), atol=1e-6)
+
+
 def _code(fn) -> tuple[grpc.StatusCode, str]:
     with pytest.raises(RolloutError) as e:
         fn()
