@@ -235,9 +235,9 @@ def run_policy_cases(cases=POLICY_CASES) -> list[dict[str, Any]]:
     from quicknav_core.train.memory import POLICY_MAX_ROWS, policy_memory
 
     rows = []
-    with tempfile.TemporaryDirectory() as runs:
+    with tempfile.TemporaryDirectory() as folder:
         for name, preset in cases:
-            run_dir = policy_run(preset, Path(runs) / name)
+            run_dir = policy_run(preset, Path(folder) / name)
             est = policy_memory(resolve_train({"preset": preset}))
             case = {"run_dir": str(run_dir), "rows": POLICY_MAX_ROWS}
             runs = [_child_peak(_POLICY_CHILD, json.dumps(case), None, timeout=1800)
