@@ -157,19 +157,29 @@ def test_delete_only_finished(store):
 
 
 def test_rollout_endpoints_expire_unless_renewed(store):
-    store.register_endpoint({"worker": "w1", "address": "gpu-a:50051", "device": "cuda"}, ttl_s=0.4)
-    time.sleep(0.05)
+    """An endpoint lives for its ttl from its last registration. The times are deadlines from the
+    first registration, with margins of 0.7 s or more, so a loaded test machine's stalls (a CI run
+    on 2 cores) do not decide the outcome."""
+    t0 = time.monotonic()
+
+    def at(t: float) -> None:  # sleep until t seconds after the first registration
+        time.sleep(max(0.0, t0 + t - time.monotonic()))
+
+    store.register_endpoint({"worker": "w1", "address": "gpu-a:50051", "device": "cuda"}, ttl_s=1.0)
+    at(0.05)
     store.register_endpoint({"worker": "w2", "address": "gpu-b:50051", "device": "cuda"}, ttl_s=30)
     listed = store.endpoints()
     assert [e["worker"] for e in listed] == ["w1", "w2"]  # oldest first
     assert listed[0]["address"] == "gpu-a:50051" and listed[0]["since"] <= listed[1]["since"]
     since = listed[0]["since"]
-    time.sleep(0.25)
-    store.register_endpoint({"worker": "w1", "address": "gpu-a:50051", "sessions": 3}, ttl_s=0.4)
-    time.sleep(0.25)  # past the first ttl, within the renewed one
+    at(0.3)
+    store.register_endpoint({"worker": "w1", "address": "gpu-a:50051", "sessions": 3}, ttl_s=2.0)
+    renewed = time.monotonic() - t0
+    assert renewed < 1.0, f"renewed {renewed:.2f} s after registering: past its first ttl"
+    at(1.1)  # past the first ttl, within the renewed one (until at least 2.3 s)
     w1 = store.endpoints()[0]
     assert w1["worker"] == "w1" and w1["sessions"] == 3 and w1["since"] == since
-    time.sleep(0.5)  # w1 stops renewing
+    at(renewed + 2.1)  # w1 stopped renewing: its renewed ttl has run out
     assert [e["worker"] for e in store.endpoints()] == ["w2"]
     store.unregister_endpoint("w2")
     assert store.endpoints() == []
