@@ -299,9 +299,11 @@ def main() -> None:
 
     from quicknav_core.bench.machine import machine_info
 
-    ap = argparse.ArgumentParser()
+    names = [c[0] for group in (CASES, EVAL_CASES, ROLLOUT_CASES, POLICY_CASES) for c in group]
+    ap = argparse.ArgumentParser(description="Memory admission's estimates beside measured peaks.")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/memory.json"))
-    ap.add_argument("--case", action="append", help="only these cases")
+    ap.add_argument("--case", action="append", choices=names, metavar="NAME",
+                    help=f"only these cases (repeat it): {', '.join(names)}")  # fmt: skip
     args = ap.parse_args()
     chosen = [c for c in CASES if not args.case or c[0] in args.case]
     evals = [c for c in EVAL_CASES if not args.case or c[0] in args.case]
