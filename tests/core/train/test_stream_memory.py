@@ -51,12 +51,16 @@ def test_policy_admission__estimate_within_ten_percent_of_the_measured_peak(name
     _check(name, policy_memory(resolve_train({"preset": preset})), row["measured_mb"])
 
 
-def test_policy_admission__counts_one_streams_most_rows():
-    """The server refuses ``load.rows`` above POLICY_MAX_ROWS; the estimate the Policy stream is
-    admitted by is the one for that many rows, and grows with them."""
-    from quicknav_service.rollout.policy import MAX_ROWS
+def test_policy_admission__the_door_counts_one_streams_most_rows():
+    """The Policy stream is admitted (``admit``, the door its ``load`` passes) by the estimate for
+    the most rows a stream may ask for: a budget that would hold the policy acting for 8 rows but
+    not for POLICY_MAX_ROWS refuses it, naming the estimate; the full estimate's budget admits it."""
+    from quicknav_core.admission import Limits, PolicyRequest, admit
+    from quicknav_core.train.memory import megabytes
 
     cfg = resolve_train({"preset": "paper-gtrxl"})
-    assert MAX_ROWS == POLICY_MAX_ROWS
-    assert policy_memory(cfg).total == policy_memory(cfg, POLICY_MAX_ROWS).total
-    assert policy_memory(cfg, 8).total < policy_memory(cfg).total
+    full, few = megabytes(policy_memory(cfg).total), megabytes(policy_memory(cfg, 8).total)
+    assert few < full
+    [refused] = admit(PolicyRequest(cfg), Limits(max_job_memory_mb=full - 1))
+    assert refused.get("capacity") and f"needs about {full:,} MB" in refused["msg"], refused
+    assert admit(PolicyRequest(cfg), Limits(max_job_memory_mb=full)) == []
