@@ -9,14 +9,15 @@ controller and the wheels; the same training). Columns: held-out generated floor
 (the building preset's test bank), the maps drawn for QuickNav that the policy never trained on
 (`examples/maps`: the office, the warehouse) and real SLAM maps that robots built with their lidar
 (`examples/maps/slam`: Nav2's depot and warehouse, AWS RoboMaker's small warehouse; their
-licences in that folder's README), each with no unmapped obstacles, with static ones and with
-moving ones; a collision ends an episode, a failure, for every row (the rule the
+licences in that folder's README), each with no unmapped obstacles, with static ones, with
+moving ones, and with both at once (the building preset's own mix: what an evaluation of its policy
+on a map meets by default); a collision ends an episode, a failure, for every row (the rule the
 building preset trains under; the paper's env lets the robot slide on). Every figure is a `quicknav eval` of the same episodes (seed 0) in a fresh
 process, as a user runs it: success, SPL, collisions per episode, time to goal (successes).
 Trainings are reused when their run folder already holds the whole budget (`--retrain` trains
 again), and evaluations when their folder holds one of the same command (`--fresh` runs them
-again). `--where` and `--rows` evaluate only the maps and policies they name and keep the other
-cells of the results file (a map added later needs no rerun of the rest).
+again). `--where`, `--rows` and `--obstacles` evaluate only the maps, policies and obstacle settings they
+name and keep the other cells of the results file (a map added later needs no rerun of the rest).
 
     uv run python benchmarks/buildings.py [--episodes 100] [--runs runs/buildings] [--where "depot (SLAM)"]
 
@@ -61,6 +62,9 @@ OBSTACLES = {
     "none": ["--set", "obstacles=null"],
     "static": ["--set", 'obstacles={"static": 6, "moving": 0}'],
     "moving": ["--set", 'obstacles={"static": 0, "moving": 3}'],
+    # the building preset's own mix, boxes and people at once: what `quicknav eval --map` of its
+    # policy drives among by default (the env it trained in)
+    "both": ["--set", 'obstacles={"static": 6, "moving": 3}'],
 }
 
 
@@ -99,7 +103,11 @@ def main() -> None:
                     help="evaluate only these columns (repeat it); the results file keeps the rest")
     ap.add_argument("--rows", action="append", choices=[*PRESETS, *BASELINES, *SHIELDED],
                     help="evaluate only these rows (repeat it); the results file keeps the rest")
+    ap.add_argument("--obstacles", action="append", choices=list(OBSTACLES),
+                    help="evaluate only these obstacle settings (repeat it); the results file keeps"
+                    " the rest")
     args = ap.parse_args()
+    settings = {o: OBSTACLES[o] for o in (args.obstacles or OBSTACLES)}
     wheres, wanted = args.where or list(WHERE), args.rows or [*PRESETS, *BASELINES, *SHIELDED]
     env_file = args.runs / "building-env.json"
     rows: dict[str, dict] = {}
@@ -124,7 +132,7 @@ def main() -> None:
     for baseline in (b for b in BASELINES if b in wanted):  # in the building preset's env
         rows[baseline] = {"train_s": None, "who": ["--policy", baseline, "--config", str(env_file)],
                           "floor plans": []}  # fmt: skip
-    partial = args.where or args.rows
+    partial = args.where or args.rows or args.obstacles
     kept = {}
     if partial and args.out.exists():
         doc = json.loads(args.out.read_text())
@@ -140,7 +148,7 @@ def main() -> None:
         for where in wheres:
             flags = WHERE[where]
             base = row["floor plans"] if where == "floor plans" else flags
-            for obstacles, sets in OBSTACLES.items():
+            for obstacles, sets in settings.items():
                 key = f"{where}, {obstacles}"
                 out = args.runs / "eval" / name / re.sub(r"[^a-z0-9]+", "-", key.lower()).strip("-")
                 r = evaluate(row["who"], [*base, *sets, *RULES], out, args.episodes, args.fresh)

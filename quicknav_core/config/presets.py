@@ -109,8 +109,8 @@ PRESETS: dict[str, dict[str, Any]] = {
         " two scans) that follows the map's global plan (waypoints in the robot's frame) and"
         " avoids, by its lidar, what the map does not show (boxes, people walking). Trained on"
         " generated floor plans only: its figures on real maps are those of a building it never"
-        " saw. 11 min on 2 CPU cores of an AMD EPYC VM with AVX-512 (slower 2-core VMs took up to"
-        " 3x as long); start here for your own building (docs: Drive a building).",
+        " saw. 11 min on 2 CPU cores of an AMD EPYC or an Intel Xeon VM with AVX-512 (a slower"
+        " 2-core VM took 3x as long); start here for your own building (docs: Drive a building).",
         "notes": "Everything is QuickNav's (not in the paper): the plan in the observation, the"
         " path-progress reward, the obstacles and the training budget.",
         "config": {
