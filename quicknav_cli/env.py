@@ -58,6 +58,7 @@ def run_demo(config: EnvConfig, out_dir: Path, policy: str = "oracle", seed: int
     from quicknav_core.config import EvalConfig
     from quicknav_core.env import render
     from quicknav_core.eval.evaluate import run_episodes
+    from quicknav_core.eval.pictures import episode_plan, episode_snapshot
     from quicknav_core.eval.scripted import baseline_agent
 
     if policy not in DEMO_POLICIES:
@@ -67,12 +68,8 @@ def run_demo(config: EnvConfig, out_dir: Path, policy: str = "oracle", seed: int
     cfg = EvalConfig(episodes=1, seed=seed, split="train", gif_episodes=1, pictures=False)
     ep = run_episodes(env, params, agent, cfg, runtime=runtime)
     steps = int(ep.steps[0])
-    snaps = [
-        {"walls": ep.walls[0], "pos": ep.trajectories[0, t], "theta": ep.gif["theta"][0, t],
-         "goal": ep.goals[0], "lidar_ranges": ep.gif["lidar_ranges"][0, t],
-         "lidar_hits": ep.gif["lidar_hits"][0, t]}
-        for t in range(steps + 1)
-    ]  # fmt: skip
+    plan = episode_plan(ep, config, 0)  # drawn when the env observes a plan; obstacles too
+    snaps = [episode_snapshot(ep, config, 0, t, plan) for t in range(steps + 1)]
     reached = bool(ep.success[0])
     ret = float(ep.returns[0])
     out_dir.mkdir(parents=True, exist_ok=True)

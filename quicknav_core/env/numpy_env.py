@@ -38,6 +38,7 @@ from quicknav_core.env.constants import (
     check_split,
     observation_bounds,
 )
+from quicknav_core.env.plan_np import NEIGHBOURS, greedy_path_np, plan_polyline_np  # noqa: F401 (the twin's)
 
 if TYPE_CHECKING:  # pragma: no cover - the twin reads its config's fields, never imports it
     from quicknav_core.config.env import EnvConfig
@@ -47,8 +48,6 @@ if TYPE_CHECKING:  # pragma: no cover - the twin reads its config's fields, neve
 f32 = np.float32
 _BIG = f32(BIG)
 _INF = f32(1e9)  # env.plan.INF
-# 8 neighbours (d_row, d_col), orthogonal first: env.plan's order, so ties break the same way
-_NEIGHBOURS = ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (1, -1), (-1, 1), (-1, -1))
 
 
 def _shift_np(a: np.ndarray, dr: int, dc: int, fill) -> np.ndarray:
@@ -60,7 +59,7 @@ def _shift_np(a: np.ndarray, dr: int, dc: int, fill) -> np.ndarray:
 
 def _moves_np(usable: np.ndarray) -> list[tuple[int, int, np.ndarray, np.float32]]:
     out = []
-    for dr, dc in _NEIGHBOURS:
+    for dr, dc in NEIGHBOURS:
         ok = usable & _shift_np(usable, dr, dc, False)
         if dr and dc:  # no corner cutting
             ok = ok & _shift_np(usable, dr, 0, False) & _shift_np(usable, 0, dc, False)
@@ -82,26 +81,6 @@ def cell_field_np(usable: np.ndarray, goal_rc) -> np.ndarray:
         if not np.any(best < d):
             return best
         d = best
-
-
-def greedy_path_np(field: np.ndarray, usable: np.ndarray, start, steps: int) -> np.ndarray:
-    """``env.plan.greedy_path``: (steps, 2) cells down the field, never up (ties: the first)."""
-    n = field.shape[0]
-    r, c = int(start[0]), int(start[1])
-    out = np.zeros((steps, 2), np.int64)
-    for i in range(steps):
-        best, br, bc = field[r, c], r, c
-        for dr, dc in _NEIGHBOURS:
-            rr, cc = min(max(r + dr, 0), n - 1), min(max(c + dc, 0), n - 1)
-            ok = usable[rr, cc]
-            if dr and dc:
-                ok = ok and usable[min(max(r + dr, 0), n - 1), c] and usable[r, min(max(c + dc, 0), n - 1)]
-            d = field[rr, cc] if ok else _INF
-            if d < best:
-                best, br, bc = d, rr, cc
-        r, c = br, bc
-        out[i] = (r, c)
-    return out
 
 
 def plan_waypoints_np(field, usable, rc, goal, cell, lookahead: int, count: int) -> np.ndarray:
@@ -240,7 +219,7 @@ def place_obstacles_np(u: np.ndarray, config, free_cells: np.ndarray, walls: np.
     f = free_cells[np.minimum(np.floor(u[:, 0] * free_cells.size).astype(np.int64), free_cells.size - 1)]
     r, c = f // g, f % g
     opened = np.ones(n, bool)
-    for dr, dc in _NEIGHBOURS:
+    for dr, dc in NEIGHBOURS:
         opened &= ~walls[np.clip(r + dr, 0, g - 1), np.clip(c + dc, 0, g - 1)]
     moving = np.arange(n) >= o.static
     lo = np.where(moving, o.moving_radius_m[0], o.static_radius_m[0]).astype(f32)

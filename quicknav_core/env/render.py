@@ -32,17 +32,41 @@ RAY_COLOURS = {HIT_NONE: "#9e9e9e", HIT_WALL: "#d62728", HIT_GOAL: "#2ca02c"}  #
 ROBOT_COLOUR = "#1f77b4"
 GOAL_COLOUR = "#2ca02c"
 PATH_COLOUR = "#ff7f0e"
+PLAN_COLOUR = "#17becf"  # the global plan, dashed
+BOX_COLOUR = "#8c564b"  # unmapped static obstacles
+PERSON_COLOUR = "#9467bd"  # unmapped moving obstacles
 
 
-def as_snapshot(state: Any) -> dict[str, np.ndarray]:
-    """Plain NumPy dict of the fields a picture needs, from an EnvState or a dict."""
-    get = state.get if isinstance(state, Mapping) else (lambda k: getattr(state, k))
+def as_snapshot(state: Any, config: EnvConfig | None = None) -> dict[str, np.ndarray]:
+    """Plain NumPy dict of the fields a picture needs, from an EnvState, a NumPy twin's snapshot
+    or a dict. Optional, drawn when present: ``plan`` (K, 2) the global plan's points, ``boxes``
+    and ``people`` (M, 3) x, y, radius of the unmapped obstacles present. A state gives them from
+    its plan field (the cells down it from the robot's cell) and its obstacles (``config`` says
+    which are static; without a config a state's plan and obstacles are not drawn)."""
+    mapping = isinstance(state, Mapping)
+    get = (lambda k: state.get(k)) if mapping else (lambda k: getattr(state, k, None))
     out = {k: np.asarray(get(k)) for k in ("walls", "pos", "theta", "goal")}
-    for k in ("lidar_ranges", "lidar_hits"):
-        try:
+    for k in ("lidar_ranges", "lidar_hits", "boxes", "people"):
+        if get(k) is not None:
             out[k] = np.asarray(get(k))
-        except (AttributeError, KeyError):
-            pass
+    plan = get("plan")
+    if plan is not None:
+        plan = np.asarray(plan)
+        if plan.ndim == 2 and plan.shape[1] == 2:  # already points
+            out["plan"] = plan
+        elif config is not None and get("cell") is not None:  # a state's field: cells to the goal
+            from quicknav_core.env.plan_np import plan_polyline_np
+
+            out["plan"] = plan_polyline_np(plan, np.asarray(get("cell")), out["pos"], out["goal"],
+                                           config.cell_size)  # fmt: skip
+    obstacles = get("obstacles")
+    if obstacles is not None and "boxes" not in out and config is not None and config.obstacles:
+        field = (lambda k: obstacles[k]) if isinstance(obstacles, Mapping) else (
+            lambda k: getattr(obstacles, k))
+        discs = np.concatenate([np.asarray(field("pos"), np.float64).reshape(-1, 2),
+                                np.asarray(field("radius"), np.float64).reshape(-1, 1)], axis=1)  # fmt: skip
+        k = config.obstacles.static
+        out["boxes"], out["people"] = discs[:k][discs[:k, 2] > 0], discs[k:][discs[k:, 2] > 0]
     return out
 
 
@@ -68,8 +92,9 @@ def draw_room(ax: Axes, walls: np.ndarray, room_size: float) -> None:
 
 class FrameDrawer:
     """Frames of one size drawn on one figure whose artists move from frame to frame: the room,
-    the goal, the trajectory so far, the lidar rays coloured by hit type, the robot with its
-    heading and a title that fits.
+    the goal, the global plan (dashed), the trajectory so far, the unmapped obstacles (boxes
+    brown, people purple), the lidar rays coloured by hit type, the robot with its heading and a
+    title that fits.
 
     A figure built from nothing for every frame (as this module did) cost 28 ms a frame at 320 px,
     most of it building axes and artists; an episode's GIF of a hundred frames built the same room,
@@ -95,6 +120,8 @@ class FrameDrawer:
                                              alpha=0.35, lw=0))  # fmt: skip
         (self.goal_star,) = ax.plot([0], [0], marker="*", color=GOAL_COLOUR, ms=10)
         (self.path,) = ax.plot([], [], color=PATH_COLOUR, lw=1.5)
+        (self.plan,) = ax.plot([], [], color=PLAN_COLOUR, lw=1.2, ls=(0, (3, 2)), zorder=1.5)
+        self.discs: list[Circle] = []  # the unmapped obstacles' discs, made as episodes need them
         self.rays = ax.add_collection(LineCollection([], linewidths=0.8, zorder=2, capstyle="projecting"),
                                       autolim=False)  # fmt: skip
         self.robot = ax.add_patch(Circle((0, 0), r, color=ROBOT_COLOUR, zorder=5))
@@ -103,7 +130,7 @@ class FrameDrawer:
         self._walls: np.ndarray | None = None
         self._angles = beam_angles(config.lidar_beams, config.lidar_fov_deg)
         # what moves from frame to frame is drawn over a saved background (matplotlib's blitting)
-        self._moving = sorted([self.path, self.rays, ax.title, self.robot, self.heading],
+        self._moving = sorted([self.plan, self.path, self.rays, ax.title, self.robot, self.heading],
                               key=lambda a: a.get_zorder())  # fmt: skip
         self._background = None
         self._background_key: tuple | None = None
@@ -111,7 +138,7 @@ class FrameDrawer:
     def draw(self, state: Any, trajectory: np.ndarray | None = None, title: str | None = None) -> np.ndarray:
         """One frame as an RGB uint8 array: ``state`` a snapshot (see the module doc),
         ``trajectory`` (T, 2) the path so far; rays are drawn when the snapshot has them."""
-        snap = as_snapshot(state)
+        snap = as_snapshot(state, self.config)
         walls = np.asarray(snap["walls"])
         if self._walls is None or walls.shape != self._walls.shape or not np.array_equal(walls, self._walls):
             self.room.set_data(walls.astype(float))
@@ -124,6 +151,16 @@ class FrameDrawer:
             self.path.set_data(trajectory[:, 0], trajectory[:, 1])
         else:
             self.path.set_data([], [])
+        plan = snap.get("plan")
+        self.plan.set_data(*(([], []) if plan is None else (plan[:, 0], plan[:, 1])))
+        discs = [(d, BOX_COLOUR) for d in snap.get("boxes", ())] + [
+            (d, PERSON_COLOUR) for d in snap.get("people", ())]  # fmt: skip
+        while len(self.discs) < len(discs):
+            self.discs.append(self.ax.add_patch(Circle((0, 0), 0.1, lw=0, zorder=4)))
+        for patch, ((x, y, r), colour) in zip(self.discs, discs, strict=False):
+            patch.set(center=(x, y), radius=r, color=colour, visible=True)
+        for patch in self.discs[len(discs):]:
+            patch.set_visible(False)
         pos, theta = np.asarray(snap["pos"], dtype=float), float(snap["theta"])
         if "lidar_ranges" in snap:
             angles = theta + self._angles
@@ -146,7 +183,8 @@ class FrameDrawer:
         key = (tuple(goal), tuple(self.ax.get_position().bounds))  # and the room (reset above)
         if key != self._background_key:
             # the room, the goal and the frame of the axes, drawn once per episode (and layout)
-            for artist in self._moving:
+            shown = [a for a in [*self._moving, *self.discs] if a.get_visible()]
+            for artist in shown:
                 artist.set_visible(False)
             # a whole draw places the title anew, and a hidden title far above the axes
             placed = self.ax.title.get_position()
@@ -154,12 +192,14 @@ class FrameDrawer:
             self.ax.title.set_position(placed)
             self._background = canvas.copy_from_bbox(self.fig.bbox)
             self._background_key = key
-            for artist in self._moving:
+            for artist in shown:
                 artist.set_visible(True)
         else:
             canvas.restore_region(self._background)
-        for artist in self._moving:  # in the order a whole draw gives them (by zorder)
-            self.ax.draw_artist(artist)
+        moving = sorted([*self._moving, *self.discs], key=lambda a: a.get_zorder())
+        for artist in moving:  # in the order a whole draw gives them (by zorder)
+            if artist.get_visible():
+                self.ax.draw_artist(artist)
         return np.asarray(canvas.buffer_rgba())[..., :3].copy()
 
     def close(self) -> None:
@@ -255,7 +295,7 @@ def episode_frames(
     frames, path = [], []
     with FrameDrawer(config, size_px) as drawer:
         for t, state in enumerate(snapshots):
-            snap = as_snapshot(state)
+            snap = as_snapshot(state, config)
             path.append(snap["pos"])
             label = f"{title}  t={t}" if title else f"t={t}"
             frames.append(drawer.draw(snap, np.array(path), title=label))

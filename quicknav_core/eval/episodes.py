@@ -39,7 +39,12 @@ class Episodes:
     trajectories: np.ndarray  # (N, T+1, 2) positions (frozen after the end)
     walls: np.ndarray  # (N, g, g)
     goals: np.ndarray  # (N, 2)
-    gif: dict[str, np.ndarray]  # first G episodes: theta, lidar ranges/hits per step
+    # first G episodes: theta, lidar ranges/hits, actions per step; with unmapped obstacles also
+    # "obstacles" (G, T+1, M, 2), their centres at every step
+    gif: dict[str, np.ndarray]
+    # (N, M, 3) x, y, radius of each episode's unmapped obstacles at its start (radius 0: absent;
+    # the env's static ones first, ``EnvConfig.obstacles``); None for an env without them
+    obstacles: np.ndarray | None = None
 
 
 class EvalStopped(Exception):
@@ -100,15 +105,18 @@ def _episodes_program(env, agent: Agent, batch: int, gif: int, deterministic: bo
                 plen + jnp.where(alive, jnp.linalg.norm(states2.pos - states.pos, axis=-1), 0.0),
                 success | (alive & info["goal_reached"]), trunc | (alive & info["truncated"]),
             )  # fmt: skip
+            people = None if states2.obstacles is None else states2.obstacles.pos[:g]
             rec = (states2.pos, states2.theta[:g], states2.lidar_ranges[:g], states2.lidar_hits[:g],
-                   action[:g])  # fmt: skip
+                   action[:g], people)  # fmt: skip
             return carry, rec
 
-        final, (pos, theta, ranges, hits, actions) = jax.lax.scan(step, carry0, act_keys)
+        final, (pos, theta, ranges, hits, actions, moved) = jax.lax.scan(step, carry0, act_keys)
         _, _, _, _, _, steps, ret, coll, plen, success, trunc = final
         first = (states.theta[:g], states.lidar_ranges[:g], states.lidar_hits[:g])
+        obstacles = None if states.obstacles is None else (
+            states.obstacles.pos, states.obstacles.radius, moved)  # fmt: skip
         return (states.pos, states.walls, states.goal, ref, steps, ret, coll, plen, success,
-                trunc, pos, theta, ranges, hits, actions, first)  # fmt: skip
+                trunc, pos, theta, ranges, hits, actions, first, obstacles)  # fmt: skip
 
     return run
 
@@ -159,10 +167,18 @@ def run_episodes(
         # (G, T, 2): action t -> pose t+1
         "actions": np.asarray(take(14, 1), np.float32).swapaxes(0, 1)[:g_total],
     }
+    obstacles = None
+    if parts[0][16] is not None:  # unmapped obstacles: where each episode put them, who moved
+        at_start = np.concatenate([np.asarray(p[16][0]) for p in parts])[:n]  # (N, M, 2)
+        radius = np.concatenate([np.asarray(p[16][1]) for p in parts])[:n]  # (N, M)
+        obstacles = np.concatenate([at_start, radius[..., None]], axis=-1).astype(np.float32)
+        moved = np.concatenate([np.asarray(p[16][2]) for p in gif_parts], axis=1)  # (T, G, M, 2)
+        first_pos = np.concatenate([np.asarray(p[16][0])[:g] for p in gif_parts])  # (G, M, 2)
+        gif["obstacles"] = np.concatenate([first_pos[None], moved], axis=0).swapaxes(0, 1)[:g_total]
     return Episodes(
         success=success, truncated=trunc, steps=steps, returns=ret, collisions=coll,
         path_length=plen, reference_length=ref, trajectories=traj, walls=walls, goals=goals,
-        gif=gif,
+        gif=gif, obstacles=obstacles,
     )  # fmt: skip
 
 
@@ -187,6 +203,42 @@ def _map_placements(config: EnvConfig, runtime: Runtime | None) -> dict[str, Any
     return out
 
 
+def _unmapped(ep: Episodes, config: EnvConfig, i: int, n: int) -> dict[str, Any]:
+    """Picture episode ``i``'s global plan (``plan``: [x, y] points, an ``observe_plan`` env) and
+    its unmapped obstacles present (``boxes``: [x, y, radius] each; ``people``: radius and x, y
+    at each of the ``n`` steps), in metres."""
+    out: dict[str, Any] = {}
+    if config.observe_plan:
+        path = plan_path(config, ep.walls[i], ep.trajectories[i, 0], ep.goals[i])
+        out["plan"] = np.round(path.astype(np.float64), 3).tolist()
+    if ep.obstacles is not None and "obstacles" in ep.gif:
+        n_static = config.obstacles.static
+        at = ep.gif["obstacles"][i, :n].astype(np.float64)  # (n, M, 2)
+        radius = ep.obstacles[i, :, 2].astype(np.float64)
+        out["boxes"] = [[round(float(x), 3), round(float(y), 3), round(float(r), 3)]
+                        for (x, y), r in zip(at[0, :n_static], radius[:n_static], strict=True) if r > 0]
+        out["people"] = [{"radius": round(float(radius[k]), 3), "x": np.round(at[:, k, 0], 3).tolist(),
+                          "y": np.round(at[:, k, 1], 3).tolist()}
+                         for k in range(n_static, radius.shape[0]) if radius[k] > 0]  # fmt: skip
+    return out
+
+
+def plan_path(config: EnvConfig, walls: np.ndarray, start: np.ndarray, goal: np.ndarray) -> np.ndarray:
+    """(K, 2) x, y of the global plan an ``observe_plan`` env gives an episode that starts at
+    ``start``: the centres of the cells down the plan's field from the start's cell (the NumPy
+    twin's planner, the env's rule: cells the robot's disc fits in, 8-connected, no corner
+    cutting), then the goal. Just the start when the goal cannot be reached."""
+    from quicknav_core.env.clearance import disc_fits
+    from quicknav_core.env.numpy_env import cell_field_np
+    from quicknav_core.env.plan_np import plan_polyline_np
+
+    walls = np.asarray(walls, dtype=bool)
+    cell, g = config.cell_size, walls.shape[0]
+    usable = disc_fits(walls, cell, config.robot_radius) if config.collision_reach else ~walls
+    rc = lambda xy: np.clip(np.floor(np.asarray(xy, np.float64)[::-1] / cell).astype(np.int64), 0, g - 1)  # noqa: E731
+    return plan_polyline_np(cell_field_np(usable, rc(goal)), rc(start), start, goal, cell)
+
+
 def replay_data(ep: Episodes, config: EnvConfig, agent_name: str, runtime: Runtime | None = None
                 ) -> dict[str, Any]:  # fmt: skip
     """The picture episodes step by step, for the browser's replay (``replay.json``): walls as
@@ -209,6 +261,7 @@ def replay_data(ep: Episodes, config: EnvConfig, agent_name: str, runtime: Runti
             "theta": np.round(ep.gif["theta"][i, :n], 4).tolist(),
             "ranges": np.round(ep.gif["lidar_ranges"][i, :n], 3).tolist(),
             "hits": ep.gif["lidar_hits"][i, :n].astype(int).tolist(),
+            **_unmapped(ep, config, i, n),
         })  # fmt: skip
     maps = _map_placements(config, runtime)
     if maps:  # which map each episode drove in (its walls are that map's room)

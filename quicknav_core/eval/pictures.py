@@ -16,11 +16,11 @@ import numpy as np
 
 from quicknav_core.config import EnvConfig
 from quicknav_core.eval.aggregate import performance_profile
-from quicknav_core.eval.episodes import Episodes
+from quicknav_core.eval.episodes import Episodes, plan_path
 from quicknav_core.layout import EVAL
 
 __all__ = ["draw_all", "draw_difficulty", "draw_gif", "draw_profiles", "draw_robustness", "draw_trajectories",
-           "picture_warning", "rooms_in_words"]  # fmt: skip
+           "episode_plan", "episode_snapshot", "obstacles_at", "picture_warning", "rooms_in_words"]  # fmt: skip
 
 
 def picture_warning(name: str, error: BaseException) -> str:
@@ -153,7 +153,7 @@ def draw_trajectories(ep: Episodes, config: EnvConfig, path: Path, title: str = 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from quicknav_core.env.render import GOAL_COLOUR, PATH_COLOUR, draw_room
+    from quicknav_core.env import render
 
     count = min(9, ep.success.size)
     fig, axes = plt.subplots(3, 3, figsize=(9, 9.4))
@@ -161,18 +161,60 @@ def draw_trajectories(ep: Episodes, config: EnvConfig, path: Path, title: str = 
         if i >= count:
             ax.axis("off")
             continue
-        draw_room(ax, ep.walls[i], config.room_size)
+        render.draw_room(ax, ep.walls[i], config.room_size)
+        if (plan := episode_plan(ep, config, i)) is not None:  # the global plan, dashed
+            ax.plot(plan[:, 0], plan[:, 1], color=render.PLAN_COLOUR, lw=1.2, ls=(0, (3, 2)))
+        if ep.obstacles is not None:  # boxes where they stood; people where they started, and
+            k = config.obstacles.static  # their walk when the episode's steps were kept
+            for j, (x, y, r) in enumerate(ep.obstacles[i]):
+                if r <= 0:
+                    continue
+                person = j >= k
+                ax.add_patch(plt.Circle((x, y), r, color=render.PERSON_COLOUR if person else render.BOX_COLOUR,
+                                        alpha=0.6 if person else 1.0, lw=0))  # fmt: skip
+                if person and "obstacles" in ep.gif and i < ep.gif["obstacles"].shape[0]:
+                    walk = ep.gif["obstacles"][i, : ep.steps[i] + 1, j]
+                    ax.plot(walk[:, 0], walk[:, 1], color=render.PERSON_COLOUR, lw=0.8, alpha=0.7)
         traj = ep.trajectories[i, : ep.steps[i] + 1]
-        ax.plot(traj[:, 0], traj[:, 1], color=PATH_COLOUR, lw=1.6)
-        ax.plot(*traj[0], "o", color=PATH_COLOUR, ms=6)
-        ax.add_patch(plt.Circle(ep.goals[i], config.goal_radius, color=GOAL_COLOUR, alpha=0.4))
-        ax.plot(*ep.goals[i], "*", color=GOAL_COLOUR, ms=12)
+        ax.plot(traj[:, 0], traj[:, 1], color=render.PATH_COLOUR, lw=1.6)
+        ax.plot(*traj[0], "o", color=render.PATH_COLOUR, ms=6)
+        ax.add_patch(plt.Circle(ep.goals[i], config.goal_radius, color=render.GOAL_COLOUR, alpha=0.4))
+        ax.plot(*ep.goals[i], "*", color=render.GOAL_COLOUR, ms=12)
         ax.set_title(f"episode {i + 1}: {outcome(ep, i, config)}, {ep.steps[i]} steps", fontsize=9)
     fig.suptitle(f"{title}: {where}" if title else where, fontsize=11)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
     return path
+
+
+def episode_plan(ep: Episodes, config: EnvConfig, i: int) -> np.ndarray | None:
+    """Episode ``i``'s global plan from its start ((K, 2) points; ``plan_path``), None for an env
+    that does not observe one."""
+    if not config.observe_plan:
+        return None
+    return plan_path(config, ep.walls[i], ep.trajectories[i, 0], ep.goals[i])
+
+
+def episode_snapshot(ep: Episodes, config: EnvConfig, i: int, t: int,
+                     plan: np.ndarray | None = None) -> dict[str, Any]:  # fmt: skip
+    """Picture episode ``i`` at step ``t`` as ``FrameDrawer`` draws it: the room, pose, goal,
+    lidar, the plan (``episode_plan``, computed once per episode by the caller) and the unmapped
+    obstacles at that step."""
+    return {"walls": ep.walls[i], "pos": ep.trajectories[i, t], "theta": ep.gif["theta"][i, t],
+            "goal": ep.goals[i], "lidar_ranges": ep.gif["lidar_ranges"][i, t],
+            "lidar_hits": ep.gif["lidar_hits"][i, t], "plan": plan,
+            **obstacles_at(ep, config, i, t)}  # fmt: skip
+
+
+def obstacles_at(ep: Episodes, config: EnvConfig, i: int, t: int) -> dict[str, np.ndarray]:
+    """Picture episode ``i``'s unmapped obstacles at step ``t`` (``boxes``, ``people``: (M, 3) x,
+    y, radius of those present); {} for an env without them."""
+    if ep.obstacles is None or "obstacles" not in ep.gif:
+        return {}
+    discs = np.concatenate([ep.gif["obstacles"][i, t], ep.obstacles[i, :, 2:]], axis=1)
+    k = config.obstacles.static
+    return {"boxes": discs[:k][discs[:k, 2] > 0], "people": discs[k:][discs[k:, 2] > 0]}
 
 
 def draw_gif(
@@ -186,12 +228,9 @@ def draw_gif(
         for i in range(ep.gif["theta"].shape[0]):
             length = int(ep.steps[i]) + 1
             stride = max(1, math.ceil(length / max_frames))
+            plan = episode_plan(ep, config, i)
             for t in [*range(0, length, stride), length - 1]:
-                snap = {
-                    "walls": ep.walls[i], "pos": ep.trajectories[i, t], "theta": ep.gif["theta"][i, t],
-                    "goal": ep.goals[i], "lidar_ranges": ep.gif["lidar_ranges"][i, t],
-                    "lidar_hits": ep.gif["lidar_hits"][i, t],
-                }  # fmt: skip
+                snap = episode_snapshot(ep, config, i, t, plan)
                 frames.append(drawer.draw(snap, ep.trajectories[i, : t + 1],
                                           title=f"{title} episode {i + 1}  t={t}"))  # fmt: skip
     return save_gif(frames, path, fps=10)

@@ -142,3 +142,36 @@ def test_frame_drawer__blitted_frames_are_the_pixels_of_a_whole_draw():
                 whole = np.asarray(drawer.fig.canvas.buffer_rgba())[..., :3]
                 assert np.array_equal(frame, whole), (episode, t)
                 env.step(rng.uniform(-1, 1, 2))
+
+
+def test_frame_drawer__draws_the_plan_boxes_and_people_where_they_are():
+    """The global plan (dashed), a box and a person at their places, in their colours; frames
+    over the saved background equal a whole draw with them too, and a frame without them after
+    one with them shows none."""
+    from matplotlib.colors import to_rgb
+
+    from quicknav_core.env.render import BOX_COLOUR, PERSON_COLOUR, PLAN_COLOUR, FrameDrawer
+
+    cfg = EnvConfig(grid_size=8, room_size=4.0, train_rooms=4, obstacles={"static": 1, "moving": 1})
+    walls = np.zeros((8, 8), bool)
+    walls[0], walls[-1], walls[:, 0], walls[:, -1] = True, True, True, True
+    size = 200
+    pixel = lambda x, y: (int(size - (0.02 + 0.96 * y / 4.0) * size), int((0.02 + 0.96 * x / 4.0) * size))  # noqa: E731
+    colour = lambda frame, x, y: frame[pixel(x, y)] / 255.0  # noqa: E731
+    snap = {"walls": walls, "pos": np.array([0.9, 3.1]), "theta": 0.0, "goal": np.array([3.1, 3.1]),
+            "plan": np.array([[0.75, 0.75], [3.25, 0.75], [3.25, 3.1]]),
+            "boxes": np.array([[1.5, 2.0, 0.25]]), "people": np.array([[2.5, 2.0, 0.25]])}  # fmt: skip
+    with FrameDrawer(cfg, size_px=size) as drawer:
+        frame = drawer.draw(snap)
+        drawer.fig.canvas.draw()
+        assert np.array_equal(frame, np.asarray(drawer.fig.canvas.buffer_rgba())[..., :3])
+        np.testing.assert_allclose(colour(frame, 1.5, 2.0), to_rgb(BOX_COLOUR), atol=0.02)
+        np.testing.assert_allclose(colour(frame, 2.5, 2.0), to_rgb(PERSON_COLOUR), atol=0.02)
+        # the dashed line, antialiased over two rows of pixels: some of its pixels near its colour
+        near_plan = lambda f, x: np.linalg.norm(colour(f, x, 0.75) - to_rgb(PLAN_COLOUR)) < 0.25  # noqa: E731
+        assert sum(near_plan(frame, x) for x in np.linspace(1.0, 3.0, 40)) >= 10
+        bare = drawer.draw({k: snap[k] for k in ("walls", "pos", "theta", "goal")})
+        for x, y in ((1.5, 2.0), (2.5, 2.0)):
+            assert not np.allclose(colour(bare, x, y), to_rgb(BOX_COLOUR), atol=0.1)
+            assert not np.allclose(colour(bare, x, y), to_rgb(PERSON_COLOUR), atol=0.1)
+        assert not any(near_plan(bare, x) for x in np.linspace(1.0, 3.0, 40))

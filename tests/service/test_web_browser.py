@@ -256,6 +256,53 @@ def test_browser__replay_of_the_trained_policy_advances_frames(server, page, sho
     assert page.locator("header nav a.active").all_inner_texts() == ["Replay"]
 
 
+def test_browser__replay_draws_the_plan_boxes_and_people_where_they_are(server, page, shots):
+    """The replay's canvas draws an episode's global plan (dashed) and the obstacles the map does
+    not show (``replay.json``'s ``plan``, ``boxes`` and ``people``; tests/core/eval/
+    test_replay_unmapped.py holds them to the env) where they are at the step shown, in the GIFs'
+    colours, and its legend names them. The episode is written here: the test run's trained demo
+    observes no plan and meets no obstacles."""
+    room = 4.0
+    walls = ["########"] + ["#......#"] * 6 + ["########"]
+    episode = {"index": 0, "success": True, "steps": 1, "return": 1.0, "walls": walls,
+               "goal": [3.1, 3.1], "x": [0.9, 0.95], "y": [3.1, 3.1], "theta": [0.0, 0.0],
+               "ranges": [[], []], "hits": [[], []],
+               "plan": [[0.75, 0.75], [3.25, 0.75], [3.25, 3.1]], "boxes": [[1.5, 2.0, 0.25]],
+               "people": [{"radius": 0.25, "x": [2.5, 2.5], "y": [2.0, 2.6]}]}  # fmt: skip
+    data = {"agent": "test", "room_size": room, "grid_size": 8, "robot_radius": 0.15,
+            "goal_radius": 0.3, "dt": 0.1, "beam_angles": [], "hit_codes": {"none": 0, "wall": 1, "goal": 2},
+            "episodes": [episode]}  # fmt: skip
+    page.goto(server + "/ui/")
+    seen = page.evaluate("""(data) => {
+      const into = document.createElement("div");
+      document.body.append(into);
+      player(data, into);
+      into.querySelector("#play").click();  // pause
+      const slider = into.querySelector("#step-slider"), canvas = into.querySelector("canvas");
+      const at = (x, y) => Array.from(canvas.getContext("2d").getImageData(
+        Math.floor(x * canvas.width / data.room_size), Math.floor(canvas.height - y * canvas.height / data.room_size),
+        1, 1).data).slice(0, 3);
+      const show = (t) => { slider.value = String(t); slider.dispatchEvent(new Event("input")); };
+      show(0);
+      const first = {box: at(1.5, 2.0), person: at(2.5, 2.0), plan: [1, 1.5, 2, 2.5, 3].map((x) => at(x, 0.75)),
+                     dataset: {...canvas.dataset}};
+      show(1);
+      const second = {person: at(2.5, 2.6), left: at(2.5, 2.0)};
+      const legend = Array.from(into.querySelectorAll(".legend span")).map((s) => s.textContent);
+      into.remove();
+      return {first, second, legend};
+    }""", data)
+    near = lambda rgb, hex_: sum(abs(a - int(hex_[i : i + 2], 16)) for a, i in zip(rgb, (1, 3, 5), strict=True)) < 60  # noqa: E731
+    assert near(seen["first"]["box"], "#8c564b"), seen
+    assert near(seen["first"]["person"], "#9467bd"), seen
+    assert any(near(c, "#17becf") for c in seen["first"]["plan"]), seen  # dashed: some points on a dash
+    assert seen["first"]["dataset"]["plan"] == "3" and seen["first"]["dataset"]["boxes"] == "1"
+    assert seen["first"]["dataset"]["people"] == "1"
+    # at step 1 the person has walked on: drawn where it is, gone from where it was
+    assert near(seen["second"]["person"], "#9467bd") and not near(seen["second"]["left"], "#9467bd"), seen
+    assert {"global plan", "box (not on the map)", "person walking"} <= set(seen["legend"]), seen["legend"]
+
+
 def success_in_table(page) -> float:
     """The success rate the eval page's metrics table shows, as a fraction."""
     row = page.locator("#eval-metrics tr", has_text="Success rate").locator("td").inner_text()

@@ -741,6 +741,8 @@ async function mapsPage() {
 }
 
 // ------------------------------------------------------------------ replay
+const PLAN_COLOUR = "#17becf", BOX_COLOUR = "#8c564b", PERSON_COLOUR = "#9467bd"; // as the GIFs
+
 function drawFrame(canvas, data, ep, t) {
   const ctx = canvas.getContext("2d");
   const size = canvas.width;
@@ -770,6 +772,16 @@ function drawFrame(canvas, data, ep, t) {
   // goal disc
   ctx.fillStyle = "rgba(44,160,44,0.35)";
   ctx.beginPath(); ctx.arc(px(ep.goal[0]), py(ep.goal[1]), px(data.goal_radius), 0, 2 * Math.PI); ctx.fill();
+  // the global plan from the start (an env that observes it), dashed
+  if (ep.plan && ep.plan.length > 1) {
+    ctx.strokeStyle = PLAN_COLOUR; ctx.lineWidth = 1.5; ctx.setLineDash([5, 4]); ctx.beginPath();
+    ep.plan.forEach(([x, y], i) => ctx[i === 0 ? "moveTo" : "lineTo"](px(x), py(y)));
+    ctx.stroke(); ctx.setLineDash([]);
+  }
+  // obstacles the map does not show: boxes where they stand, people where they are at step t
+  const disc = (x, y, r, colour) => { ctx.fillStyle = colour; ctx.beginPath(); ctx.arc(px(x), py(y), Math.max(px(r), 2), 0, 2 * Math.PI); ctx.fill(); };
+  (ep.boxes || []).forEach(([x, y, r]) => disc(x, y, r, BOX_COLOUR));
+  (ep.people || []).forEach((p) => disc(p.x[t], p.y[t], p.radius, PERSON_COLOUR));
   // path so far
   ctx.strokeStyle = "#ff7f0e"; ctx.lineWidth = 2; ctx.beginPath();
   for (let i = 0; i <= t; i++) { const f = i === 0 ? "moveTo" : "lineTo"; ctx[f](px(ep.x[i]), py(ep.y[i])); }
@@ -804,6 +816,10 @@ function player(data, into) {
     slider.max = String(ep.x.length - 1); slider.value = String(t);
     label.textContent = `step ${t} / ${ep.x.length - 1}`;
     canvas.dataset.step = String(t);
+    // what the frame shows beyond the room and the robot (read by the browser tests)
+    canvas.dataset.plan = String(ep.plan ? ep.plan.length : 0);
+    canvas.dataset.boxes = String((ep.boxes || []).length);
+    canvas.dataset.people = String((ep.people || []).length);
     drawFrame(canvas, data, ep, t);
   };
   const schedule = () => {
@@ -824,7 +840,10 @@ function player(data, into) {
     h("div", { class: "legend" }, h("span", {}, h("i", { style: "background:#d62728" }), "lidar hit a wall"),
       h("span", {}, h("i", { style: "background:#2ca02c" }), "hit the goal"),
       h("span", {}, h("i", { style: "background:#9e9e9e" }), "nothing in range"),
-      h("span", {}, h("i", { style: "background:#ff7f0e" }), "path")))));
+      h("span", {}, h("i", { style: "background:#ff7f0e" }), "path"),
+      ...(data.episodes.some((e) => e.plan) ? [h("span", {}, h("i", { style: `background:${PLAN_COLOUR}` }), "global plan")] : []),
+      ...(data.episodes.some((e) => (e.boxes || []).length) ? [h("span", {}, h("i", { style: `background:${BOX_COLOUR}` }), "box (not on the map)")] : []),
+      ...(data.episodes.some((e) => (e.people || []).length) ? [h("span", {}, h("i", { style: `background:${PERSON_COLOUR}` }), "person walking")] : [])))));
   show(); schedule();
 }
 
