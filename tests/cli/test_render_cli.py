@@ -175,3 +175,26 @@ def test_frame_drawer__draws_the_plan_boxes_and_people_where_they_are():
             assert not np.allclose(colour(bare, x, y), to_rgb(BOX_COLOUR), atol=0.1)
             assert not np.allclose(colour(bare, x, y), to_rgb(PERSON_COLOUR), atol=0.1)
         assert not any(near_plan(bare, x) for x in np.linspace(1.0, 3.0, 40))
+
+
+def test_as_snapshot__a_twin_state_gives_its_plan_and_obstacles():
+    """A NumPy twin's snapshot (plan as a field, obstacles as arrays) becomes what the drawer
+    draws: the plan's points from the robot to the goal, the boxes and people present."""
+    from quicknav_core.env.render import as_snapshot
+
+    cfg = EnvConfig(rooms="floorplan", grid_size=16, room_size=8.0, train_rooms=8, test_rooms=4,
+                    observe_plan=True, obstacles={"static": 4, "moving": 3})  # fmt: skip
+    env = QuickNavNumpyEnv(cfg)
+    env.reset(seed=1)
+    state = env.snapshot()
+    snap = as_snapshot(state, cfg)
+    np.testing.assert_allclose(snap["plan"][0], state["pos"], atol=1e-5)
+    np.testing.assert_allclose(snap["plan"][-1], state["goal"], atol=1e-5)
+    # the plan's cells go down the twin's field one neighbour at a time
+    cells = np.floor(snap["plan"][1:-1][:, ::-1] / cfg.cell_size).astype(int)
+    values = state["plan"][cells[:, 0], cells[:, 1]]
+    assert np.all(np.diff(values) < 0) and np.abs(np.diff(cells, axis=0)).max() <= 1
+    radius = state["obstacles"]["radius"]
+    assert len(snap["boxes"]) == (radius[:4] > 0).sum() and len(snap["people"]) == (radius[4:] > 0).sum()
+    assert len(snap["boxes"]) + len(snap["people"]) > 0
+    assert "plan" not in as_snapshot(state)  # without the config, no cell size: not drawn
