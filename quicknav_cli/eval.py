@@ -74,6 +74,11 @@ def map_overrides(request: dict[str, Any], path: Path, say: bool = True) -> dict
     if say:  # (not under --print-config, whose output is the JSON alone)
         console.print(f"on {path}: grid {fit.grid_size} of {fit.cell_m:g} m cells, step limit"
                       f" {fit.max_steps} (longest path {fit.longest_path_m:.1f} m)", highlight=False)  # fmt: skip
+        if env.obstacles and (env.obstacles.static or env.obstacles.moving):
+            # the policy's own env: a figure with them is not one without them (docs: Measured)
+            console.print(f"among obstacles the map does not show: up to {env.obstacles.static}"
+                          f" boxes and {env.obstacles.moving} people walking (--set obstacles=null"
+                          " for none)", highlight=False)  # fmt: skip
     for message in fit.warnings():
         warn(message)
     return fit.env_overrides(str(path))

@@ -43,6 +43,10 @@ def test_journey__drive_a_building(runner, trained_building_run):
     env = result["env_config"]
     assert env["room_size"] / env["grid_size"] == 0.5 and env["grid_size"] >= 42, env
     assert env["max_steps"] > 300 and f"step limit {env['max_steps']}" in evaluated.stdout, str(evaluated)
+    # among the preset's own unmapped obstacles, and it says so (a figure with them is not one
+    # without them)
+    assert env["obstacles"]["static"] == 6 and env["obstacles"]["moving"] == 3, env["obstacles"]
+    assert "up to 6 boxes and 3 people" in evaluated.stdout, str(evaluated)
     # the office's 1 m doors and 0.1 m walls lose free space at 0.5 m cells: said, with the share
     assert "free space" in evaluated.stderr and "%" in evaluated.stderr, str(evaluated)
     # a policy that learned. This short training's policy is early and its figures move with the
