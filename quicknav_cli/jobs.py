@@ -240,6 +240,12 @@ def jobs_submit(
                      " wheels (a command that would bring the robot within 1 cm of a lidar return"
                      " is slowed, down to turning in place)."),
     ] = False,
+    map: Annotated[
+        str | None,
+        typer.Option("--map", metavar="map:<id>", help="eval: drive a map uploaded to the server"
+                     " (quicknav maps list) at the policy's cell size; the grid and the step"
+                     " limit follow the map."),
+    ] = None,
     follow: Annotated[
         bool, typer.Option("--follow", help="Wait with a progress bar until the job finishes.")
     ] = False,
@@ -262,6 +268,9 @@ def jobs_submit(
         fail("--total-steps is for train and sweep jobs")
     if kind != "eval" and robustness:
         fail("--robustness is for eval jobs")
+    if kind != "eval" and map is not None:
+        fail("--map is for eval jobs (a train job names its maps: --set env.rooms=maps --set"
+             " 'env.maps.train=[\"map:<id>\"]')")
     if kind != "eval" and shield:
         fail("--shield is for eval jobs")
     if stochastic:
@@ -295,7 +304,7 @@ def jobs_submit(
         else:
             submitted = client.evaluate(job=job, policy=policy, episodes=episodes, seed=seed,
                                         env=env_sets(set_), split=split, deterministic=deterministic,
-                                        robustness=robustness, shield=shield)  # fmt: skip
+                                        robustness=robustness, shield=shield, map=map)  # fmt: skip
         console.print(f"submitted {submitted.kind} job {submitted.id} ({submitted.status})",
                       highlight=False)  # fmt: skip
         if follow:

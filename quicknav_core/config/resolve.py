@@ -118,6 +118,14 @@ class EvalFields(StrictModel):
     model_config = ConfigDict(json_schema_extra=not_both_ways)
 
     policy: Literal["random", "oracle", "dwa"] | None = Field(None, description="a baseline policy")
+    map: str | None = Field(
+        None, min_length=1, max_length=500,
+        description="drive this map: a map uploaded to the service ('map:<id>', GET /maps), or a"
+        " map_server YAML file for the library; the map is laid on the grid at the policy's own"
+        " cell size, and the step limit follows its longest path (twice the time to drive it at"
+        " full speed) unless 'env' sets max_steps",
+        examples=["map:3f2a9c1d5e7b8a60"],
+    )  # fmt: skip
     env: dict[str, Any] = Field(
         default_factory=dict,
         description="EnvConfig fields (dotted keys or sections) set on the policy's env: the "
@@ -395,14 +403,39 @@ def resolve_env(fields: Mapping[str, Any], base: EnvConfig | None = None) -> Env
     return _validate(EnvConfig, data, where, problems)
 
 
+def _on_map(req: EvalFields, env: EnvConfig, resolver: Callable[[str], Any] | None,
+            stored_only: bool) -> EnvConfig:  # fmt: skip
+    """``env`` on the request's map: its rooms, the grid that holds it at ``env``'s cell size and
+    the step limit of its longest path (the request's own ``env.max_steps`` wins)."""
+    from quicknav_core.env.maps import MapError, is_map_id, map_path
+    from quicknav_core.eval.map_fit import fit_map
+
+    name = str(req.map)
+    if stored_only and not is_map_id(name):
+        raise ConfigError.single(["map"], "this server reads only maps uploaded to it: name one as"
+                                 " 'map:<id>' (GET /maps lists them; POST /maps uploads one)")  # fmt: skip
+    try:
+        fit = fit_map(env, map_path(name, resolver))
+        on_map = resolve_env(fit.env_overrides(name), env)
+        if "max_steps" in req.env:
+            on_map = resolve_env({"max_steps": req.env["max_steps"]}, on_map)
+    except (MapError, ConfigError, ValueError, OSError) as e:
+        why = "; ".join(i["msg"] for i in e.items) if isinstance(e, ConfigError) else str(e)
+        raise ConfigError.single(["map"], why) from None
+    return on_map
+
+
 def resolve_eval(
-    request: EvalRequest | Mapping[str, Any], trained_env: TrainedEnv | None = None
-) -> EvalConfig:
+    request: EvalRequest | Mapping[str, Any], trained_env: TrainedEnv | None = None,
+    map_resolver: Callable[[str], Any] | None = None, stored_maps_only: bool = False,
+) -> EvalConfig:  # fmt: skip
     """The EvalConfig an eval request asks for, its env resolved.
 
     ``trained_env(source)`` gives the env a trained policy was trained in (the CLI reads the run
     folder, the service the train job's stored config); it raises ``ConfigError`` for an unknown
-    source. ``env`` overrides apply on top; they may not change the observation's length.
+    source. ``env`` overrides apply on top; they may not change the observation's length. ``map``
+    lays a map on the grid at that env's cell size (``eval.map_fit``): ``map_resolver`` reads
+    uploaded maps (``map:<id>``; a service's), and ``stored_maps_only`` refuses any other name.
     """
     req: EvalRequest = _request(EvalRequest, request)
     source = req.source
@@ -416,6 +449,8 @@ def resolve_eval(
         env = resolve_env(req.env, base_env)
     except ConfigError as e:
         raise ConfigError([{**i, "loc": ["env", *i["loc"]]} for i in e.items], e.title) from None
+    if req.map is not None:
+        env = _on_map(req, env, map_resolver, stored_maps_only)
     if source is not None and env.obs_dim != base_env.obs_dim:
         raise ConfigError.single(
             ["env"],

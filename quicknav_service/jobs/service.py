@@ -164,7 +164,9 @@ class JobsService:
         sent = _as_sent(body)
         job_id = self.get(body.job_id).id if body.job_id is not None else None
         try:
-            cfg = resolve_eval(body.as_request(job_id), trained_env=self.trained_env)
+            cfg = resolve_eval(body.as_request(job_id), trained_env=self.trained_env,
+                               map_resolver=self.runtime.map_resolver if self.runtime else None,
+                               stored_maps_only=self.limits.stored_maps_only)  # fmt: skip
         except ConfigError as e:  # the library's name of the trained policy is the body's job_id
             raise Invalid([{**i, "loc": ["job_id"]} if i["loc"] == ["source"] else i
                            for i in e.items]) from None  # fmt: skip

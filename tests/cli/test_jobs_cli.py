@@ -119,7 +119,7 @@ SUBMIT = {
                   sdk="sweep", renamed={"set_": "overrides", "preset": "space"},
                   sdk_only={"idempotency_key"}, api=SweepRequest),
     "eval": dict(cli={"job", "policy", "episodes", "seed", "split", "deterministic", "stochastic",
-                      "set_", "robustness", "shield"},
+                      "set_", "robustness", "shield", "map"},
                  sdk="evaluate", renamed={"set_": "env"}, sdk_only={"idempotency_key"},
                  api=EvalRequest),
 }  # fmt: skip

@@ -267,6 +267,38 @@ def test_train_and_eval_jobs_run_on_an_uploaded_map(server):
     assert {e["map"] for e in replay["episodes"]} == {meta["ref"]}
 
 
+def test_eval_job_with_a_map__laid_at_the_policys_cell_size_and_refused_naming_the_map(server):
+    """POST /jobs/eval {"map": "map:<id>"} (the SDK's ``evaluate(map=)``): a policy trained in
+    carved rooms of 1 m cells (TINY) drives the uploaded map laid at 1 m cells, the grid and step
+    limit following the map (its suggestion at 0.5 m cells would be a grid of 18); an unknown id
+    and a file on the server's disk are refused, naming the field."""
+    from quicknav_client import QuickNavClient
+
+    meta = upload(server.url, [("room.yaml", yaml_for()), ("room.pgm", pgm(room_picture()))]).json()
+    r = httpx.post(f"{server.url}/jobs/train", json={"preset": "demo", "overrides": TINY})
+    assert r.status_code == 202, r.text
+    train = r.json()
+    worker = server.worker()
+    worker.run_burst(poll_s=0.05)
+    assert wait_status(server.url, train["id"], {"succeeded", "failed"})["status"] == "succeeded"
+    with QuickNavClient(server.url) as qn:
+        ev = qn.evaluate(train["id"], map=meta["ref"], episodes=4)
+    env = ev.raw["config"]["env"]
+    assert (env["rooms"], env["maps"]["train"]) == ("maps", [meta["ref"]]), env
+    assert env["room_size"] / env["grid_size"] == 1.0 and env["grid_size"] == 10, env  # 7.6 m + the ring
+    assert meta["suggested_env"]["grid_size"] == 18 and env["max_steps"] != 60, env
+    assert ev.raw["request"]["map"] == meta["ref"]
+    worker.run_burst(poll_s=0.05)
+    assert wait_status(server.url, ev.id, {"succeeded", "failed"})["status"] == "succeeded"
+    replay = json.loads(httpx.get(f"{server.url}/jobs/{ev.id}/artifacts/replay.json").content)
+    assert {e["map"] for e in replay["episodes"]} == {meta["ref"]}
+    for bad, says in (("map:0123456789abcdef", "no such map"), ("/etc/hostname", "only maps uploaded")):
+        r = httpx.post(f"{server.url}/jobs/eval", json={"job_id": train["id"], "map": bad})
+        assert r.status_code == 422, r.text
+        [item] = r.json()["detail"]
+        assert item["loc"][-1] == "map" and says in item["msg"], item
+
+
 def test_rollout_start_on_an_uploaded_map_steps_as_the_env_on_the_file(tmp_path):
     """A gRPC Start naming map:<id> runs the rooms the same map gives as a file on disk."""
     import jax

@@ -115,3 +115,63 @@ def test_browser__upload_a_map_train_on_it_evaluate_and_replay_on_its_picture(
 
     # the map is in use while a job that names it waits; a finished job does not hold it
     assert httpx.delete(f"{server}/maps/{m['id']}", headers={**AUTH}).status_code == 204
+
+
+@pytest.mark.slow  # an evaluation of the building policy on the map, compiled as a worker does
+def test_browser__a_building_policy_evaluated_on_an_uploaded_map_replays_its_plan_and_obstacles(
+    server, page, shots, map_files, data_dir, trained_building_run  # noqa: F811 (fixtures)
+):
+    """docs/building.md's journey in the browser: a building policy (the test run's shorter
+    training of the preset, seeded as a succeeded job: it trained on floor plans only) evaluated
+    on a map uploaded to the server, from the job page's evaluation form, and replayed with its
+    global plan and the boxes and people it met drawn."""
+    from quicknav_service.jobs.sqlite_store import SQLiteJobStore
+    from tests.trained import seed_trained_job
+
+    files = [("files", ("room.yaml", (map_files / "room.yaml").read_bytes())),
+             ("files", ("room.pgm", (map_files / "room.pgm").read_bytes()))]  # fmt: skip
+    up = httpx.post(f"{server}/maps", headers=AUTH, files=files, data={"name": "building room"})
+    assert up.status_code in (200, 201), up.text
+    m = up.json()
+    store = SQLiteJobStore(data_dir / "jobs.db")
+    try:
+        job_id = seed_trained_job(store, data_dir / "artifacts", trained_building_run, {"preset": "building"})
+    finally:
+        store.close()
+    page.goto(f"{server}/ui/jobs/{job_id}")
+    page.wait_for_selector("#login, #eval-where")
+    if page.locator("#login").count():  # signed in by the module's first test, unless run alone
+        page.fill("input[name=token]", TOKEN)
+        page.click("#login button[type=submit]")
+    page.wait_for_selector(f'#eval-where option[value="{m["id"]}"]', state="attached")
+    page.select_option("#eval-where", m["id"])
+    page.fill("#eval-episodes", "20")
+    page.click("#run-eval")
+    page.wait_for_function(f"!location.pathname.endsWith('{job_id}') || !!document.querySelector('.error-box')",
+                           timeout=20_000)  # fmt: skip
+    assert not page.locator(".error-box").count(), page.inner_text(".error-box")
+    eval_id = page.url.rsplit("/", 1)[-1]
+    page.wait_for_selector('#job-head .badge[data-status="succeeded"]', timeout=JOB_TIMEOUT_MS)
+    ev = httpx.get(f"{server}/jobs/{eval_id}", headers=AUTH).json()
+    env = ev["config"]["env"]
+    # the map at the policy's 0.5 m cells, the policy's own sensors and unmapped obstacles
+    assert env["maps"]["train"] == [m["ref"]] and env["grid_size"] == m["suggested_env"]["grid_size"], env
+    assert env["observe_plan"] and env["obstacles"]["static"] == 6 and env["obstacles"]["moving"] == 3, env
+    # the train job's list of evaluations names the map
+    page.goto(f"{server}/ui/jobs/{job_id}")
+    page.wait_for_selector(f'#evals tr[data-id="{eval_id}"]')
+    assert "map " in page.inner_text(f'#evals tr[data-id="{eval_id}"]')
+
+    page.click("#replay-link")
+    canvas = page.locator("#replay-canvas")
+    canvas.wait_for(timeout=20_000)
+    page.click("#play")  # pause
+    drawn = []
+    for i in range(len(page.locator("#episode option").all_inner_texts())):
+        page.select_option("#episode", index=i)
+        drawn.append({k: int(canvas.get_attribute(f"data-{k}")) for k in ("plan", "boxes", "people")})
+    assert all(d["plan"] >= 2 for d in drawn), drawn  # the start, cells, the goal
+    assert sum(d["boxes"] + d["people"] for d in drawn) > 0, drawn
+    legend = page.inner_text(".legend")
+    assert "global plan" in legend and ("box" in legend or "person" in legend), legend
+    page.screenshot(path=shots / "building-replay.png", full_page=True)

@@ -254,16 +254,18 @@ class AsyncQuickNavClient:
         idempotency_key: str | None = None,
         robustness: bool = False,
         shield: bool = False,
+        map: str | None = None,
     ) -> AsyncJob:
         """Submit an eval job: a train job's checkpoint, or a ``random``/``oracle`` baseline.
 
         ``stochastic`` is the deprecated opposite of ``deterministic`` (the API's name);
         ``robustness`` also runs the episodes at each fixed perturbation level (eval.json's
         ``robustness`` rows, robustness.png); ``shield`` puts the safety layer between the policy
-        and the wheels (agent ``<policy>+shield``).
+        and the wheels (agent ``<policy>+shield``); ``map`` drives a map uploaded to the server
+        (``map:<id>``) at the policy's cell size, the grid and step limit following it.
         """
         body = core.eval_body(job, policy, episodes, seed, env, split, deterministic, stochastic,
-                              robustness, shield)  # fmt: skip
+                              robustness, shield, map)  # fmt: skip
         return await self._submit("/jobs/eval", body, idempotency_key)
 
     async def jobs(

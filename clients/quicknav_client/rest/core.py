@@ -231,6 +231,7 @@ def eval_body(
     stochastic: bool | None = None,
     robustness: bool = False,
     shield: bool = False,
+    map: str | None = None,
 ) -> dict:
     """The POST /jobs/eval body (the server checks that exactly one of job and policy is given)."""
     if stochastic is not None:
@@ -245,6 +246,8 @@ def eval_body(
         body["policy"] = policy
     if env:
         body["env"] = dict(env)
+    if map is not None:
+        body["map"] = map
     if robustness:
         body["robustness"] = True
     if shield:

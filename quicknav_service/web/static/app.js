@@ -392,7 +392,18 @@ async function evalsOf(job) {
   return data.filter((e) => e.config && e.config.source === job.id);
 }
 
-/** A train job's evaluations: run one on held-out rooms, and the list of those run so far. */
+/** "map NAME" for an eval job that drove a map its policy did not train on (an uploaded map by
+    its name in ``maps``, a file by its name), else null. */
+function mapOf(e, job, maps) {
+  const env = e.config && e.config.env, own = job.config && job.config.env;
+  if (!env || env.rooms !== "maps" || !env.maps) return null;
+  const names = (env.maps.test && env.maps.test.length ? env.maps.test : env.maps.train) || [];
+  const same = own && own.rooms === "maps" && JSON.stringify(own.maps) === JSON.stringify(env.maps);
+  const shown = (n) => { const m = maps.find((x) => x.ref === n); return m ? m.name : n.split("/").pop(); };
+  return same ? null : `map ${names.map(shown).join(", ")}`;
+}
+
+/** A train job's evaluations: run one on held-out rooms or an uploaded map, and the list of those run so far. */
 function evalsSection(job, sec) {
   const episodes = h("input", { id: "eval-episodes", type: "number", min: 1, max: 100000, value: 100,
     "aria-label": "episodes", style: "width:90px" });
@@ -400,19 +411,33 @@ function evalsSection(job, sec) {
   const robust = h("input", { id: "eval-robustness", type: "checkbox" });
   // drive through the safety layer (the collision monitor a robot runs between policy and motors)
   const shield = h("input", { id: "eval-shield", type: "checkbox" });
+  // where: the policy's own held-out rooms, or an uploaded map, which the server lays on the grid
+  // at the policy's cell size with a step limit from its longest path (POST /jobs/eval "map")
+  const where = h("select", { id: "eval-where", "aria-label": "where" }, h("option", { value: "" }, "held-out rooms"));
+  let maps = [];
   const run = h("button", { class: "primary", id: "run-eval", onclick: async () => {
     run.disabled = true;
+    const body = { job_id: job.id, episodes: Number(episodes.value), split: "test", robustness: robust.checked, shield: shield.checked };
+    const map = maps.find((m) => m.id === where.value);
+    if (map) body.map = map.ref;
     try {
-      const ev = await api("/jobs/eval", { method: "POST",
-        body: { job_id: job.id, episodes: Number(episodes.value), split: "test", robustness: robust.checked, shield: shield.checked } });
+      const ev = await api("/jobs/eval", { method: "POST", body });
       location.href = `/ui/jobs/${ev.id}`;
     } catch (e) { run.disabled = false; showError(sec, e); }
-  } }, "Evaluate on held-out rooms");
+  } }, "Evaluate");
+  const mapOptions = async () => {
+    try { maps = (await api("/maps")).data; } catch (e) { maps = []; }
+    const kept = where.value;
+    where.replaceChildren(h("option", { value: "" }, "held-out rooms"),
+      ...maps.map((m) => h("option", { value: m.id }, `map: ${m.name}`)));
+    where.value = maps.some((m) => m.id === kept) ? kept : "";
+  };
   const controls = h("div", { class: "controls", id: "eval-controls" });
   const table = h("table", { id: "evals" });
   sec.append(h("h2", {}, "Evaluations"), controls, table);
   return async () => {
-    fill(controls, job.status === "succeeded" ? [run, episodes, h("span", { class: "muted" }, "episodes, fixed seeds"),
+    await mapOptions();  // the choice of where to evaluate, and the names of maps in the list
+    fill(controls, job.status === "succeeded" ? [run, episodes, h("span", { class: "muted" }, "episodes, fixed seeds, on"), where,
       h("label", { title: "success and SPL at fixed levels of lidar noise, beam dropout, range bias, latency and wheel asymmetry (robustness.png)" },
         robust, " and at each sensor perturbation"),
       h("label", { title: "each command goes through the safety layer: its forward part is scaled down (0.5, 0.25, 0) where the next control period would bring the robot within 1 cm of a lidar return" },
@@ -427,7 +452,7 @@ function evalsSection(job, sec) {
       const m = (e.result && e.result.metrics) || {};
       return h("tr", { dataset: { id: e.id, status: e.status } },
         h("td", { class: "mono" }, h("a", { href: `/ui/jobs/${e.id}` }, short(e.id))),
-        h("td", {}, badge(e.status)), h("td", {}, e.config.split === "test" ? "held out" : e.config.split,
+        h("td", {}, badge(e.status)), h("td", {}, mapOf(e, job, maps) || (e.config.split === "test" ? "held out" : e.config.split),
           e.config.shield ? h("span", { class: "muted", title: "driven through the safety layer" }, " · safety layer") : null),
         h("td", { class: "num" }, num(e.config.episodes)),
         h("td", { class: "num" }, e.status === "failed" ? h("span", { class: "reason" }, reason(e.error)) : pct(m.success_rate)),
@@ -866,7 +891,8 @@ async function replayOf(evalJob, into) {
     const data = await api(`/jobs/${evalJob.id}/artifacts/replay.json`);
     data.pictures = await mapPictures(data);
     player(data, into);
-    const where = evalJob.config.split === "test" ? "held-out test rooms" : "training rooms";
+    const map = evalJob.request && evalJob.request.map;  // an eval asked to drive an uploaded map
+    const where = map ? `the map ${map}` : evalJob.config.split === "test" ? "held-out test rooms" : "training rooms";
     into.prepend(h("p", { class: "muted", id: "replay-source" }, `Episodes of eval job `,
       h("a", { href: `/ui/jobs/${evalJob.id}` }, short(evalJob.id)), ` on ${where} (seed ${evalJob.config.seed}).`));
   } catch (e) {
@@ -909,7 +935,7 @@ async function replayPage(id) {
   }
   if (ready.length) {
     const sel = h("select", { id: "eval-source", onchange: () => replayOf(ready.find((e) => e.id === sel.value), stage) },
-      ready.map((e) => h("option", { value: e.id }, `eval ${short(e.id)} (${e.config.split} rooms, seed ${e.config.seed}, ${age(e.created_at)})`)));
+      ready.map((e) => h("option", { value: e.id }, `eval ${short(e.id)} (${e.request && e.request.map ? e.request.map : `${e.config.split} rooms`}, seed ${e.config.seed}, ${age(e.created_at)})`)));
     chooser.prepend(h("span", {}, "From "), sel);
     return replayOf(ready[0], stage);
   }
