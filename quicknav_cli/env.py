@@ -57,8 +57,9 @@ def run_demo(config: EnvConfig, out_dir: Path, policy: str = "oracle", seed: int
     """One episode in a train room, driven by the oracle (``scripted``) or at random, drawn."""
     from quicknav_core.config import EvalConfig
     from quicknav_core.env import render
+    from quicknav_core.eval.episodes import episode_plan
     from quicknav_core.eval.evaluate import run_episodes
-    from quicknav_core.eval.pictures import episode_plan, episode_snapshot
+    from quicknav_core.eval.pictures import episode_snapshot
     from quicknav_core.eval.scripted import baseline_agent
 
     if policy not in DEMO_POLICIES:

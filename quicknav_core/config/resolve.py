@@ -388,6 +388,8 @@ def resolve_sweep(request: SweepRequest | Mapping[str, Any]) -> SweepConfig:
 
 
 TrainedEnv = Callable[[str], EnvConfig]
+# how a door lays a named map on the grid for an env: (env, map) -> env on the map
+MapEnv = Callable[[EnvConfig, str], EnvConfig]
 
 
 def resolve_env(fields: Mapping[str, Any], base: EnvConfig | None = None) -> EnvConfig:
@@ -403,23 +405,17 @@ def resolve_env(fields: Mapping[str, Any], base: EnvConfig | None = None) -> Env
     return _validate(EnvConfig, data, where, problems)
 
 
-def _on_map(req: EvalFields, env: EnvConfig, resolver: Callable[[str], Any] | None,
-            stored_only: bool) -> EnvConfig:  # fmt: skip
-    """``env`` on the request's map: its rooms, the grid that holds it at ``env``'s cell size and
-    the step limit of its longest path (the request's own ``env.max_steps`` wins)."""
-    from quicknav_core.env.maps import MapError, is_map_id, map_path
-    from quicknav_core.eval.map_fit import fit_map
-
-    name = str(req.map)
-    if stored_only and not is_map_id(name):
-        raise ConfigError.single(["map"], "this server reads only maps uploaded to it: name one as"
-                                 " 'map:<id>' (GET /maps lists them; POST /maps uploads one)")  # fmt: skip
+def _on_map(req: EvalFields, env: EnvConfig, map_env: MapEnv | None) -> EnvConfig:
+    """``env`` on the request's map (``map_env``: the door's fitting, ``eval.map_fit.env_on_map``);
+    the request's own ``env.max_steps`` wins over the map's step limit."""
+    if map_env is None:
+        raise ConfigError.single(["map"], "this door cannot lay maps on the grid; set the env's"
+                                 " rooms, grid and step limit instead (quicknav eval --map does)")  # fmt: skip
     try:
-        fit = fit_map(env, map_path(name, resolver))
-        on_map = resolve_env(fit.env_overrides(name), env)
+        on_map = map_env(env, str(req.map))
         if "max_steps" in req.env:
             on_map = resolve_env({"max_steps": req.env["max_steps"]}, on_map)
-    except (MapError, ConfigError, ValueError, OSError) as e:
+    except (ConfigError, ValueError, OSError) as e:  # a MapError is a ValueError
         why = "; ".join(i["msg"] for i in e.items) if isinstance(e, ConfigError) else str(e)
         raise ConfigError.single(["map"], why) from None
     return on_map
@@ -427,15 +423,16 @@ def _on_map(req: EvalFields, env: EnvConfig, resolver: Callable[[str], Any] | No
 
 def resolve_eval(
     request: EvalRequest | Mapping[str, Any], trained_env: TrainedEnv | None = None,
-    map_resolver: Callable[[str], Any] | None = None, stored_maps_only: bool = False,
+    map_env: MapEnv | None = None,
 ) -> EvalConfig:  # fmt: skip
     """The EvalConfig an eval request asks for, its env resolved.
 
     ``trained_env(source)`` gives the env a trained policy was trained in (the CLI reads the run
     folder, the service the train job's stored config); it raises ``ConfigError`` for an unknown
-    source. ``env`` overrides apply on top; they may not change the observation's length. ``map``
-    lays a map on the grid at that env's cell size (``eval.map_fit``): ``map_resolver`` reads
-    uploaded maps (``map:<id>``; a service's), and ``stored_maps_only`` refuses any other name.
+    source. ``env`` overrides apply on top; they may not change the observation's length.
+    ``map_env(env, map)`` lays the request's ``map`` on the grid at that env's cell size (a door
+    passes ``quicknav_core.eval.map_fit.env_on_map`` with how it reads maps; without it a request
+    that names a map is refused).
     """
     req: EvalRequest = _request(EvalRequest, request)
     source = req.source
@@ -450,7 +447,7 @@ def resolve_eval(
     except ConfigError as e:
         raise ConfigError([{**i, "loc": ["env", *i["loc"]]} for i in e.items], e.title) from None
     if req.map is not None:
-        env = _on_map(req, env, map_resolver, stored_maps_only)
+        env = _on_map(req, env, map_env)
     if source is not None and env.obs_dim != base_env.obs_dim:
         raise ConfigError.single(
             ["env"],

@@ -22,7 +22,11 @@ from quicknav_core.env.plan import shortest_path_length
 from quicknav_core.eval.agents import Agent
 from quicknav_core.runtime import Runtime, runtime_or_new
 
-__all__ = ["Episodes", "EvalStopped", "replay_data", "run_episodes"]
+__all__ = ["PLAN_KEPT", "Episodes", "EvalStopped", "episode_plan", "replay_data", "run_episodes"]
+
+# the episodes whose plan field an evaluation keeps for its pictures (trajectories.png draws 9;
+# the GIF and the replay the first ``gif_episodes``), at most a batch
+PLAN_KEPT = 9
 
 
 @dataclass
@@ -45,6 +49,9 @@ class Episodes:
     # (N, M, 3) x, y, radius of each episode's unmapped obstacles at its start (radius 0: absent;
     # the env's static ones first, ``EnvConfig.obstacles``); None for an env without them
     obstacles: np.ndarray | None = None
+    # (K, g, g) the env's plan field (cells to the goal's cell) of episodes 0..K-1, an
+    # ``observe_plan`` env's: the plan the pictures draw (``PLAN_KEPT``); None otherwise
+    plan_fields: np.ndarray | None = None
 
 
 class EvalStopped(Exception):
@@ -115,8 +122,9 @@ def _episodes_program(env, agent: Agent, batch: int, gif: int, deterministic: bo
         first = (states.theta[:g], states.lidar_ranges[:g], states.lidar_hits[:g])
         obstacles = None if states.obstacles is None else (
             states.obstacles.pos, states.obstacles.radius, moved)  # fmt: skip
+        plans = None if states.plan is None else states.plan[: min(n, max(g, PLAN_KEPT))]
         return (states.pos, states.walls, states.goal, ref, steps, ret, coll, plen, success,
-                trunc, pos, theta, ranges, hits, actions, first, obstacles)  # fmt: skip
+                trunc, pos, theta, ranges, hits, actions, first, obstacles, plans)  # fmt: skip
 
     return run
 
@@ -175,10 +183,12 @@ def run_episodes(
         moved = np.concatenate([np.asarray(p[16][2]) for p in gif_parts], axis=1)  # (T, G, M, 2)
         first_pos = np.concatenate([np.asarray(p[16][0])[:g] for p in gif_parts])  # (G, M, 2)
         gif["obstacles"] = np.concatenate([first_pos[None], moved], axis=0).swapaxes(0, 1)[:g_total]
+    # the first batch holds episodes 0..K-1, whose plans the pictures draw
+    plans = None if parts[0][17] is None else np.asarray(parts[0][17])[: min(n, batch)]
     return Episodes(
         success=success, truncated=trunc, steps=steps, returns=ret, collisions=coll,
         path_length=plen, reference_length=ref, trajectories=traj, walls=walls, goals=goals,
-        gif=gif, obstacles=obstacles,
+        gif=gif, obstacles=obstacles, plan_fields=plans,
     )  # fmt: skip
 
 
@@ -208,8 +218,7 @@ def _unmapped(ep: Episodes, config: EnvConfig, i: int, n: int) -> dict[str, Any]
     its unmapped obstacles present (``boxes``: [x, y, radius] each; ``people``: radius and x, y
     at each of the ``n`` steps), in metres."""
     out: dict[str, Any] = {}
-    if config.observe_plan:
-        path = plan_path(config, ep.walls[i], ep.trajectories[i, 0], ep.goals[i])
+    if (path := episode_plan(ep, config, i)) is not None:
         out["plan"] = np.round(path.astype(np.float64), 3).tolist()
     if ep.obstacles is not None and "obstacles" in ep.gif:
         n_static = config.obstacles.static
@@ -221,6 +230,22 @@ def _unmapped(ep: Episodes, config: EnvConfig, i: int, n: int) -> dict[str, Any]
                           "y": np.round(at[:, k, 1], 3).tolist()}
                          for k in range(n_static, radius.shape[0]) if radius[k] > 0]  # fmt: skip
     return out
+
+
+def episode_plan(ep: Episodes, config: EnvConfig, i: int) -> np.ndarray | None:
+    """Episode ``i``'s global plan from its start ((K, 2) points), None for an env that does not
+    observe one: down the env's own plan field where the evaluation kept it (``PLAN_KEPT``),
+    else planned again in NumPy (``plan_path``)."""
+    if not config.observe_plan:
+        return None
+    start, goal = ep.trajectories[i, 0], ep.goals[i]
+    if ep.plan_fields is not None and i < ep.plan_fields.shape[0]:
+        from quicknav_core.env.plan_np import plan_polyline_np
+
+        cell, g = config.cell_size, ep.plan_fields.shape[1]
+        rc = np.clip(np.floor(np.asarray(start, np.float64)[::-1] / cell).astype(np.int64), 0, g - 1)
+        return plan_polyline_np(ep.plan_fields[i], rc, start, goal, cell)
+    return plan_path(config, ep.walls[i], start, goal)
 
 
 def plan_path(config: EnvConfig, walls: np.ndarray, start: np.ndarray, goal: np.ndarray) -> np.ndarray:

@@ -9,6 +9,7 @@ limit follows the map's longest shortest path, and the map's frame is kept for t
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -117,3 +118,18 @@ def longest_path_cells(walls: np.ndarray, cell: float, radius: float) -> float:
         d[~np.isfinite(d)] = -1.0
         start, far = int(np.argmax(d)), float(d.max())
     return far
+
+
+def env_on_map(env: EnvConfig, name: str, resolver: Callable[[str], Path] | None = None,
+               stored_only: bool = False) -> EnvConfig:  # fmt: skip
+    """``env`` driving the map ``name`` (a file, or ``map:<id>`` read through ``resolver``): its
+    rooms, the grid that holds it at ``env``'s cell size and the step limit of its longest path
+    (``resolve_eval``'s ``map_env``). ``stored_only``: a server's rule, only uploaded maps.
+    MapError when it cannot be laid."""
+    from quicknav_core.config import resolve_env
+    from quicknav_core.env.maps import is_map_id, map_path
+
+    if stored_only and not is_map_id(name):
+        raise MapError("this server reads only maps uploaded to it: name one as 'map:<id>'"
+                       " (GET /maps lists them; POST /maps uploads one)")  # fmt: skip
+    return resolve_env(fit_map(env, map_path(name, resolver)).env_overrides(name), env)

@@ -16,11 +16,11 @@ import numpy as np
 
 from quicknav_core.config import EnvConfig
 from quicknav_core.eval.aggregate import performance_profile
-from quicknav_core.eval.episodes import Episodes, plan_path
+from quicknav_core.eval.episodes import Episodes, episode_plan
 from quicknav_core.layout import EVAL
 
 __all__ = ["draw_all", "draw_difficulty", "draw_gif", "draw_profiles", "draw_robustness", "draw_trajectories",
-           "episode_plan", "episode_snapshot", "obstacles_at", "picture_warning", "rooms_in_words"]  # fmt: skip
+           "episode_snapshot", "obstacles_at", "picture_warning", "rooms_in_words"]  # fmt: skip
 
 
 def picture_warning(name: str, error: BaseException) -> str:
@@ -186,14 +186,6 @@ def draw_trajectories(ep: Episodes, config: EnvConfig, path: Path, title: str = 
     fig.savefig(path, dpi=100)
     plt.close(fig)
     return path
-
-
-def episode_plan(ep: Episodes, config: EnvConfig, i: int) -> np.ndarray | None:
-    """Episode ``i``'s global plan from its start ((K, 2) points; ``plan_path``), None for an env
-    that does not observe one."""
-    if not config.observe_plan:
-        return None
-    return plan_path(config, ep.walls[i], ep.trajectories[i, 0], ep.goals[i])
 
 
 def episode_snapshot(ep: Episodes, config: EnvConfig, i: int, t: int,

@@ -159,14 +159,21 @@ class JobsService:
         config = src.config or src.request.get("config")  # jobs stored before configs were
         return TrainConfig.model_validate(config).env
 
+    def map_env(self, env: EnvConfig, name: str) -> EnvConfig:
+        """``env`` on a map an eval names (``map``): an uploaded one, read from this server's
+        maps; its grid and step limit at the policy's cell size."""
+        from quicknav_core.eval.map_fit import env_on_map
+
+        resolver = self.runtime.map_resolver if self.runtime is not None else None
+        return env_on_map(env, name, resolver, stored_only=self.limits.stored_maps_only)
+
     def submit_eval(self, body: EvalJobCreate, key: str | None = None) -> Job:
         """Resolve an eval request (a short id names the job by its full one), queue it."""
         sent = _as_sent(body)
         job_id = self.get(body.job_id).id if body.job_id is not None else None
         try:
             cfg = resolve_eval(body.as_request(job_id), trained_env=self.trained_env,
-                               map_resolver=self.runtime.map_resolver if self.runtime else None,
-                               stored_maps_only=self.limits.stored_maps_only)  # fmt: skip
+                               map_env=self.map_env)  # fmt: skip
         except ConfigError as e:  # the library's name of the trained policy is the body's job_id
             raise Invalid([{**i, "loc": ["job_id"]} if i["loc"] == ["source"] else i
                            for i in e.items]) from None  # fmt: skip

@@ -90,6 +90,8 @@ def test_replay__boxes_stand_still_and_people_walk_at_most_their_top_speed(repla
 
 
 def test_replay__the_plan_runs_from_the_start_down_the_envs_plan_field_to_the_goal(replayed):
+    from quicknav_core.eval.episodes import episode_plan, plan_path
+
     env, params, ep, data = replayed
     cell = CFG.cell_size
     for e in data["episodes"]:
@@ -109,6 +111,10 @@ def test_replay__the_plan_runs_from_the_start_down_the_envs_plan_field_to_the_go
         assert abs(steps.sum() - field[start_rc[0], start_rc[1]]) < 1e-3, (steps.sum(), field[tuple(start_rc)])
         for x, y in plan[1:-1]:
             assert e["walls"][int(y / cell)][int(x / cell)] == "."
+        # drawn from the env's own field, the same plan as the NumPy twin's planner gives
+        np.testing.assert_allclose(episode_plan(ep, CFG, i), plan_path(CFG, ep.walls[i], ep.trajectories[i, 0],
+                                                                       ep.goals[i]), atol=1e-5)  # fmt: skip
+    assert ep.plan_fields is not None and ep.plan_fields.shape[0] == 6  # all six episodes kept
 
 
 def test_pictures__the_gif_and_trajectories_are_drawn_with_them(replayed, tmp_path):
