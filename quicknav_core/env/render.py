@@ -65,9 +65,15 @@ def as_snapshot(state: Any, config: EnvConfig | None = None) -> dict[str, np.nda
             lambda k: getattr(obstacles, k))
         discs = np.concatenate([np.asarray(field("pos"), np.float64).reshape(-1, 2),
                                 np.asarray(field("radius"), np.float64).reshape(-1, 1)], axis=1)  # fmt: skip
-        k = config.obstacles.static
-        out["boxes"], out["people"] = discs[:k][discs[:k, 2] > 0], discs[k:][discs[k:, 2] > 0]
+        out.update(boxes_and_people(discs, config))
     return out
+
+
+def boxes_and_people(discs: np.ndarray, config: EnvConfig) -> dict[str, np.ndarray]:
+    """(M, 3) x, y, radius of an episode's unmapped obstacles as ``boxes`` and ``people``, those
+    present (radius > 0); the env's static ones come first (``config.obstacles.static``)."""
+    k = config.obstacles.static if config.obstacles else 0
+    return {"boxes": discs[:k][discs[:k, 2] > 0], "people": discs[k:][discs[k:, 2] > 0]}
 
 
 def draw_room(ax: Axes, walls: np.ndarray, room_size: float) -> None:
@@ -252,7 +258,7 @@ def save_png(rgb: np.ndarray, path: str | Path) -> Path:
 # the flat colours of every picture: in a GIF's palette even when the frames sampled for it lack one
 # (a ray that hit the goal in a single frame keeps its green)
 NAMED_COLOURS = (WALL_COLOUR, FREE_COLOUR, *RAY_COLOURS.values(), ROBOT_COLOUR, GOAL_COLOUR,
-                 PATH_COLOUR, "#000000", "#ffffff")  # fmt: skip
+                 PATH_COLOUR, PLAN_COLOUR, BOX_COLOUR, PERSON_COLOUR, "#000000", "#ffffff")  # fmt: skip
 PALETTE_SAMPLE_FRAMES = 16
 
 

@@ -170,8 +170,8 @@ def draw_trajectories(ep: Episodes, config: EnvConfig, path: Path, title: str = 
                 if r <= 0:
                     continue
                 person = j >= k
-                ax.add_patch(plt.Circle((x, y), r, color=render.PERSON_COLOUR if person else render.BOX_COLOUR,
-                                        alpha=0.6 if person else 1.0, lw=0))  # fmt: skip
+                ax.add_patch(plt.Circle((x, y), r, lw=0,
+                                        color=render.PERSON_COLOUR if person else render.BOX_COLOUR))
                 if person and "obstacles" in ep.gif and i < ep.gif["obstacles"].shape[0]:
                     walk = ep.gif["obstacles"][i, : ep.steps[i] + 1, j]
                     ax.plot(walk[:, 0], walk[:, 1], color=render.PERSON_COLOUR, lw=0.8, alpha=0.7)
@@ -204,9 +204,9 @@ def obstacles_at(ep: Episodes, config: EnvConfig, i: int, t: int) -> dict[str, n
     y, radius of those present); {} for an env without them."""
     if ep.obstacles is None or "obstacles" not in ep.gif:
         return {}
-    discs = np.concatenate([ep.gif["obstacles"][i, t], ep.obstacles[i, :, 2:]], axis=1)
-    k = config.obstacles.static
-    return {"boxes": discs[:k][discs[:k, 2] > 0], "people": discs[k:][discs[k:, 2] > 0]}
+    from quicknav_core.env.render import boxes_and_people
+
+    return boxes_and_people(np.concatenate([ep.gif["obstacles"][i, t], ep.obstacles[i, :, 2:]], axis=1), config)
 
 
 def draw_gif(

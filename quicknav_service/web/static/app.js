@@ -425,12 +425,14 @@ function evalsSection(job, sec) {
       location.href = `/ui/jobs/${ev.id}`;
     } catch (e) { run.disabled = false; showError(sec, e); }
   } }, "Evaluate");
+  // the uploaded maps, read once per page (the section refreshes every few seconds: a list
+  // rebuilt under an open drop-down would close it, and each refresh would ask for it again)
+  let mapsRead = false;
   const mapOptions = async () => {
-    try { maps = (await api("/maps")).data; } catch (e) { maps = []; }
-    const kept = where.value;
-    where.replaceChildren(h("option", { value: "" }, "held-out rooms"),
-      ...maps.map((m) => h("option", { value: m.id }, `map: ${m.name}`)));
-    where.value = maps.some((m) => m.id === kept) ? kept : "";
+    if (mapsRead) return;
+    try { maps = (await api("/maps")).data; } catch (e) { return; } // held-out rooms only; asked again next refresh
+    mapsRead = true;
+    where.append(...maps.map((m) => h("option", { value: m.id }, `map: ${m.name}`)));
   };
   const controls = h("div", { class: "controls", id: "eval-controls" });
   const table = h("table", { id: "evals" });

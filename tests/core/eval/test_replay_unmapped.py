@@ -117,12 +117,30 @@ def test_replay__the_plan_runs_from_the_start_down_the_envs_plan_field_to_the_go
     assert ep.plan_fields is not None and ep.plan_fields.shape[0] == 6  # all six episodes kept
 
 
-def test_pictures__the_gif_and_trajectories_are_drawn_with_them(replayed, tmp_path):
-    """The eval's pictures of this env draw (the frames' content: test_render_cli's drawer test)."""
+def test_pictures__the_gif_and_trajectories_draw_the_plan_boxes_and_people(replayed, tmp_path):
+    """The eval's pictures of this env show the plan and the obstacles in their colours (where
+    exactly: test_render_cli's drawer test), and the GIF's frames hold the obstacles present at
+    their step."""
+    from matplotlib.colors import to_rgb
+    from PIL import Image
+
+    from quicknav_core.env import render
     from quicknav_core.eval.pictures import draw_gif, draw_trajectories, episode_snapshot
 
     _, _, ep, _ = replayed
-    snap = episode_snapshot(ep, CFG, 0, 5, plan=np.zeros((2, 2), np.float32))
-    assert {"plan", "boxes", "people"} <= set(snap) and snap["boxes"].shape[1] == 3
-    assert draw_gif(ep, CFG, tmp_path / "e.gif", max_frames=4).stat().st_size > 0
-    assert draw_trajectories(ep, CFG, tmp_path / "t.png").stat().st_size > 0
+    snap = episode_snapshot(ep, CFG, 0, 5)
+    present = ep.obstacles[0, :, 2] > 0
+    assert len(snap["boxes"]) + len(snap["people"]) == present.sum() > 0
+    np.testing.assert_allclose(snap["people"][:, :2], ep.gif["obstacles"][0, 5][CFG.obstacles.static:][
+        present[CFG.obstacles.static:]], atol=1e-6)  # fmt: skip
+    gif = Image.open(draw_gif(ep, CFG, tmp_path / "e.gif", max_frames=4))
+    frames = []
+    for i in range(gif.n_frames):  # every frame, side by side: the GIF keeps the colours exactly
+        gif.seek(i)
+        frames.append(np.asarray(gif.convert("RGB")))
+    trajectories = np.asarray(Image.open(draw_trajectories(ep, CFG, tmp_path / "t.png")).convert("RGB"))
+    for name, picture in (("trajectories", trajectories), ("gif", np.concatenate(frames, axis=1))):
+        rgb = picture.astype(np.float64) / 255
+        for colour in (render.PLAN_COLOUR, render.BOX_COLOUR, render.PERSON_COLOUR):
+            near = np.abs(rgb - to_rgb(colour)).sum(axis=-1) < 0.1
+            assert near.sum() >= 4, (name, colour, near.sum())
