@@ -28,20 +28,40 @@ app = typer.Typer(
 
 
 def checked_grids(grid: list[int] | None, default) -> list[int]:
-    """The --grid values (or the default), each within EnvConfig's range 4..128."""
+    """The --grid values (or the default), each within EnvConfig.grid_size's range."""
+    from quicknav_core.config.env import GRID_SIZE_RANGE
+
+    lo, hi = GRID_SIZE_RANGE
     grids = grid or list(default)
-    bad = [g for g in grids if not 4 <= g <= 128]
+    bad = [g for g in grids if not lo <= g <= hi]
     if bad:
-        fail(f"--grid {bad[0]}: allowed range 4..128")
+        fail(f"--grid {bad[0]}: allowed range {lo}..{hi} (EnvConfig.grid_size)")
     return grids
 
 
 def show_with_targets(table, width: int, targets: list[dict], unit: str = "") -> None:
     """A bench's table (at least ``width`` columns wide), then each target: measured, met or not."""
-    Console(width=max(console.width, width)).print(table)
+    Console(width=max(console.width, width), markup=False, emoji=False).print(table)
     for t in targets:
         mark = "[green]met[/]" if t["met"] else "[red]NOT met[/]"
-        console.print(f"target: {t['target']}: measured {t['measured']:,}{unit} -> {mark}")
+        console.print(f"target: {t['target']}: measured {t['measured']:,}{unit} -> {mark}",
+                      markup=True)
+
+
+def given_here(ctx: typer.Context) -> None:
+    """Exit when an option of the env benchmark (``quicknav bench``'s own) was given before a
+    subcommand: it would be ignored (``quicknav bench --grid 300 rooms`` ran rooms' default grids)."""
+    sub = ctx.invoked_subcommand
+    command = ctx.command.get_command(ctx, sub)
+    theirs = {opt for p in (command.params if command else []) for opt in p.opts}
+    for param in ctx.command.params:  # (by name: typer may carry its own copy of click's enum)
+        if getattr(ctx.get_parameter_source(param.name), "name", None) == "COMMANDLINE":
+            flag = max(param.opts, key=len)
+            where = (f"put it after the command: quicknav bench {sub} {flag} ..." if flag in theirs
+                     else f"`{sub}` has no {flag} (`quicknav bench {sub} --help` lists its"
+                     f" options); the env benchmark takes it alone: quicknav bench {flag} ...")  # fmt: skip
+            fail(f"{flag} is an option of `quicknav bench` (the env benchmark), given before"
+                 f" `{sub}`, which would ignore it; {where}")
 
 
 @app.callback()
@@ -81,6 +101,7 @@ def bench_env(
 ) -> None:
     """Environment throughput: NumPy twin vs JAX (1 env, scan, vmapped batches) per grid size."""
     if ctx.invoked_subcommand is not None:
+        given_here(ctx)
         return
     expose_cpu_devices(cpu_devices or min(os.cpu_count() or 1, 8))
     from rich.table import Table
@@ -222,7 +243,7 @@ def bench_train(
         )
         table.add_row(r["name"], r["trainer"], r["network"], str(r["num_envs"]),
                       f"{r['env_steps_per_s']:,.0f}", f"{r['compile_and_first_chunk_s']:.1f}", target)  # fmt: skip
-    Console(width=max(console.width, 110)).print(table)
+    Console(width=max(console.width, 110), markup=False, emoji=False).print(table)
     console.print(f"wrote {write_report(report, out)}")
 
 

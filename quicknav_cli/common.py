@@ -11,9 +11,12 @@ from typing import Annotated, Any, NoReturn
 import typer
 from rich.console import Console
 
-console = Console()
+# markup and emoji off: a path, a map's name or an id such as "map:abcd:" is printed as written,
+# never read as rich's [tags] or :emoji: (a map named "a[/]b" crashed `maps list`); the few
+# styled lines ask for markup themselves
+console = Console(markup=False, emoji=False)
 # errors and warnings go to stderr, so a script reading stdout gets only the results
-err_console = Console(stderr=True)
+err_console = Console(stderr=True, markup=False, emoji=False)
 
 SetOpt = Annotated[
     list[str] | None,
@@ -41,14 +44,14 @@ PrintConfigOpt = Annotated[
 
 def fail(message: str, code: int = 2) -> NoReturn:
     """Print an error a person can act on and exit (the message is never read as rich markup)."""
-    err_console.print("[bold red]error:[/] ", end="", highlight=False)
+    err_console.print("[bold red]error:[/] ", end="", highlight=False, markup=True)
     err_console.print(message, highlight=False, soft_wrap=True, markup=False)
     raise typer.Exit(code)
 
 
 def warn(message: str) -> None:
     """A warning on stderr (deprecated options, ...); the command goes on."""
-    err_console.print("[yellow]warning:[/] ", end="", highlight=False)
+    err_console.print("[yellow]warning:[/] ", end="", highlight=False, markup=True)
     err_console.print(message, highlight=False, soft_wrap=True, markup=False)
 
 
@@ -82,8 +85,9 @@ def read_json(path: Path, what: str = "--config") -> dict[str, Any]:
     return data
 
 
-def resolved(resolve, request: dict[str, Any], **kw):
-    """``resolve(request)``, or exit with one line per bad field (config paths, as --set names them)."""
+def resolved(resolve, request: dict[str, Any], flags: dict[str, str] | None = None, **kw):
+    """``resolve(request)``, or exit with one line per bad field (config paths, as --set names them;
+    ``flags``: a request field by the option that set it, ``{"map": "--map"}``)."""
     from quicknav_core.config import ConfigError
 
     try:
@@ -94,7 +98,7 @@ def resolved(resolve, request: dict[str, Any], **kw):
             loc = item["loc"]
             where = (
                 f"--set {loc[1]}" if loc[:1] == ["overrides"] and len(loc) > 1
-                else item.get("field") or ".".join(loc) or e.title
+                else (flags or {}).get(".".join(loc)) or item.get("field") or ".".join(loc) or e.title
             )  # fmt: skip
             got = f" (got {item['input']!r})" if "input" in item else ""
             lines.append(f"{where}: {item['msg']}{got}")

@@ -59,29 +59,28 @@ def eval_request(
     return request
 
 
-def map_overrides(request: dict[str, Any], path: Path, say: bool = True) -> dict[str, Any]:
-    """The env fields that put the request's policy (or baseline) on the map at ``path``."""
-    from quicknav_core.config import resolve_env
-    from quicknav_core.env.maps import MapError
-    from quicknav_core.eval.map_fit import fit_map
+def map_layer(say: bool = True):
+    """``resolve_eval``'s ``map_env`` for the command line: a map file (a server's ``map:<id>``
+    is refused, naming where to download it), laid as every door lays it
+    (``eval.map_fit.env_on_map``); ``say``: print how (not under --print-config, whose output is
+    the JSON alone) and warn when the grid loses free space."""
+    from quicknav_core.eval.map_fit import env_on_map
 
-    base = run_env(request["run"]) if "run" in request else None
-    try:
-        env = resolve_env(request["env"], base)
-        fit = fit_map(env, path)
-    except (MapError, ValueError) as e:
-        fail(f"--map: {e}")
-    if say:  # (not under --print-config, whose output is the JSON alone)
-        console.print(f"on {path}: grid {fit.grid_size} of {fit.cell_m:g} m cells, step limit"
-                      f" {fit.max_steps} (longest path {fit.longest_path_m:.1f} m)", highlight=False)  # fmt: skip
-        if env.obstacles and (env.obstacles.static or env.obstacles.moving):
-            # the policy's own env: a figure with them is not one without them (docs: Measured)
-            console.print(f"among obstacles the map does not show: up to {env.obstacles.static}"
-                          f" boxes and {env.obstacles.moving} people walking (--set obstacles=null"
-                          " for none)", highlight=False)  # fmt: skip
-    for message in fit.warnings():
-        warn(message)
-    return fit.env_overrides(str(path))
+    def seen(env, fit) -> None:
+        if say:
+            console.print(f"on {fit.path}: grid {fit.grid_size} of {fit.cell_m:g} m cells, step"
+                          f" limit {fit.max_steps} (longest path {fit.longest_path_m:.1f} m)",
+                          highlight=False, soft_wrap=True)  # fmt: skip
+            if env.obstacles and (env.obstacles.static or env.obstacles.moving):
+                # the policy's own env: a figure with them is not one without them (docs: Measured)
+                console.print(f"among obstacles the map does not show: up to"
+                              f" {env.obstacles.static} boxes and {env.obstacles.moving} people"
+                              " walking (--set obstacles=null for none)", highlight=False,
+                              soft_wrap=True)  # fmt: skip
+        for message in fit.warnings():
+            warn(message)
+
+    return lambda env, name: env_on_map(env, name, seen=seen)
 
 
 def eval_cmd(
@@ -135,13 +134,14 @@ def eval_cmd(
         fail(f"--split {split!r}: allowed values are test and train")
     request = eval_request(run, policy, episodes, seed, deterministic, split, config, set_,
                            robustness, shield)  # fmt: skip
-    if on_map is not None:  # the map over --config's env, and --set over both but for the grid:
-        # --set grid_size / room_size give the cells the map is laid at (map_overrides read them),
-        # the map gives how many
-        base = read_json(config) if config else {}
-        sets = {k: v for k, v in env_sets(set_).items() if k not in ("grid_size", "room_size")}
-        request["env"] = {**base, **map_overrides(request, on_map, say=not print_only), **sets}
-    cfg = resolved(resolve_eval, request, trained_env=run_env)
+    if on_map is not None:  # the library's EvalRequest.map, as the service's eval jobs take it:
+        # laid over --config's env and --set (grid_size / room_size give the cells it is laid at,
+        # the map how many); the step limit follows the map unless --set names one
+        request["map"] = str(on_map)
+        if config and "max_steps" not in env_sets(set_):
+            request["env"].pop("max_steps", None)
+    cfg = resolved(resolve_eval, request, flags={"map": "--map"}, trained_env=run_env,
+                   map_env=map_layer(say=not print_only) if on_map is not None else None)
     if print_only:
         print_config(cfg)
         return

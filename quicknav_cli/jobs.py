@@ -174,7 +174,7 @@ def report_finished(job) -> None:
     """The finished job's status line, its warnings and error (on stderr); exit 1 unless it
     succeeded."""
     colour = "green" if job.succeeded else "red"
-    console.print(f"job {job.id}: [{colour}]{job.status}[/]", highlight=False)
+    console.print(f"job {job.id}: [{colour}]{job.status}[/]", highlight=False, markup=True)
     print_warnings(job)
     if job.error:
         err_console.print(f"error: {job.error}", highlight=False, markup=False, soft_wrap=True)
@@ -362,7 +362,7 @@ def jobs_list(
     for j in page:
         table.add_row(j.id, j.kind, j.status, progress_cell(j), str(j.attempts),
                       _when(j.created_at), latest_cell(j))  # fmt: skip
-    Console(width=max(console.width, 140)).print(table)
+    Console(width=max(console.width, 140), markup=False, emoji=False).print(table)
 
 
 @app.command("show")
@@ -405,7 +405,7 @@ def jobs_show(
     rows.append(("request", json.dumps(j.request)))
     for key, value in rows:
         table.add_row(key, value)
-    Console(width=max(console.width, 120)).print(table, markup=False, highlight=False)
+    Console(width=max(console.width, 120), markup=False, emoji=False).print(table, markup=False, highlight=False)
 
 
 @app.command("follow")
@@ -442,7 +442,7 @@ def jobs_artifacts(
     table.add_column("bytes", justify="right")
     for f in files:
         table.add_row(f["name"], f"{f['bytes']:,}")
-    Console(width=max(console.width, 100)).print(table)
+    Console(width=max(console.width, 100), markup=False, emoji=False).print(table)
 
 
 @app.command("download")

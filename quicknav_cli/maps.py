@@ -71,7 +71,7 @@ def maps_list(ctx: typer.Context) -> None:
         table.add_row(m["id"], m["name"], f"{m['width_px']} x {m['height_px']}", f"{m['resolution']:g}",
                       f"{m['width_m']:g} x {m['height_m']:g} m", f"{100 * m['free_fraction']:.0f} %",
                       ", ".join(j[:8] for j in m["used_by"]) or "-")  # fmt: skip
-    Console(width=max(console.width, 110)).print(table)
+    Console(width=max(console.width, 110), markup=False, emoji=False).print(table)
 
 
 @app.command("show")

@@ -183,4 +183,4 @@ def presets() -> None:
     from quicknav_core.config import PRESETS
 
     for name, p in PRESETS.items():
-        console.print(f"[bold]{name}[/]: {p['description']}")
+        console.print(f"[bold]{name}[/]: {p['description']}", markup=True)

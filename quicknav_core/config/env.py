@@ -110,6 +110,8 @@ def _pair(kind: type, lo: float, hi: float) -> type:
     return tuple[end, end]  # type: ignore[valid-type]
 
 
+# EnvConfig.grid_size: cells per side (map_fit.MAX_GRID and `quicknav bench --grid` read it)
+GRID_SIZE_RANGE = (4, 256)
 NoiseMetres = _pair(float, 0.0, 1.0)
 NoiseFraction = _pair(float, 0.0, 0.5)
 BiasMetres = _pair(float, -1.0, 1.0)
@@ -299,7 +301,7 @@ class EnvConfig(StrictModel):
         8.0, gt=0.0, le=1000.0, description="side of the square room, metres", json_schema_extra=TRACED
     )
     grid_size: int = Field(
-        16, ge=4, le=256, description="cells per side (outer ring is wall)", json_schema_extra=STATIC
+        16, ge=GRID_SIZE_RANGE[0], le=GRID_SIZE_RANGE[1], description="cells per side (outer ring is wall)", json_schema_extra=STATIC
     )
     carve_fraction: float = Field(
         0.8, gt=0.0, le=1.0, description="fraction of inner cells carved free"

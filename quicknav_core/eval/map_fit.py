@@ -17,10 +17,11 @@ from typing import Any
 import numpy as np
 
 from quicknav_core.config import EnvConfig
+from quicknav_core.config.env import GRID_SIZE_RANGE
 from quicknav_core.env.clearance import disc_fits
 from quicknav_core.env.maps import MapError, OccupancyMap, load_map, reachable_only, to_cells
 
-MAX_GRID = 256  # EnvConfig.grid_size's upper bound
+MAX_GRID = GRID_SIZE_RANGE[1]  # EnvConfig.grid_size's upper bound
 # the step limit: this many times the steps the longest shortest path takes at full speed
 STEP_SLACK = 2.0
 
@@ -121,15 +122,20 @@ def longest_path_cells(walls: np.ndarray, cell: float, radius: float) -> float:
 
 
 def env_on_map(env: EnvConfig, name: str, resolver: Callable[[str], Path] | None = None,
-               stored_only: bool = False) -> EnvConfig:  # fmt: skip
+               stored_only: bool = False,
+               seen: Callable[[EnvConfig, MapFit], None] | None = None) -> EnvConfig:  # fmt: skip
     """``env`` driving the map ``name`` (a file, or ``map:<id>`` read through ``resolver``): its
     rooms, the grid that holds it at ``env``'s cell size and the step limit of its longest path
     (``resolve_eval``'s ``map_env``). ``stored_only``: a server's rule, only uploaded maps.
-    MapError when it cannot be laid."""
+    ``seen(env, fit)``: told how the map was laid (the CLI prints it). MapError when it cannot be
+    laid."""
     from quicknav_core.config import resolve_env
     from quicknav_core.env.maps import is_map_id, map_path
 
     if stored_only and not is_map_id(name):
         raise MapError("this server reads only maps uploaded to it: name one as 'map:<id>'"
                        " (GET /maps lists them; POST /maps uploads one)")  # fmt: skip
-    return resolve_env(fit_map(env, map_path(name, resolver)).env_overrides(name), env)
+    fit = fit_map(env, map_path(name, resolver))
+    if seen is not None:
+        seen(env, fit)
+    return resolve_env(fit.env_overrides(name), env)

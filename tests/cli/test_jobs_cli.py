@@ -52,6 +52,7 @@ class FakeService:
         self.job = job or job_json()
         self.events = events
         self.jobs = jobs
+        self.maps: list[dict] = []
         self.requests: list[httpx.Request] = []
 
     def __call__(self, request: httpx.Request) -> httpx.Response:
@@ -60,6 +61,8 @@ class FakeService:
         if request.method == "POST" and path.startswith("/jobs/"):
             kind = path.rsplit("/", 1)[-1]
             return httpx.Response(202, json=job_json(kind=kind, status="queued"))
+        if path == "/maps":
+            return httpx.Response(200, json={"data": self.maps})
         if path == "/jobs":
             data = self.jobs if self.jobs is not None else [self.job]
             return httpx.Response(200, json={"data": data, "count": len(data)})
@@ -289,6 +292,34 @@ def test_list__a_failed_job_shows_its_reason_not_a_full_bar(service):
     compiling = next(line for line in text.splitlines() if "f" * 32 in line)
     assert "compiling" in compiling and "0%" not in compiling
     assert "100%" in next(line for line in text.splitlines() if "e" * 32 in line)
+
+
+def test_text__names_and_ids_print_as_written_never_as_markup_or_emoji(service):
+    """A map's name is the uploader's free text and a map id reads "map:<hex>:" in an error: the
+    CLI prints both as written (rich read "[/]" as a closing tag and crashed `maps list`, and
+    ":abcd:" as the emoji it names)."""
+    name = "site [/]b [bold]x :abcd: map"
+    service.maps = [{"id": "ab" * 8, "name": name, "width_px": 40, "height_px": 20,
+                     "resolution": 0.05, "width_m": 2.0, "height_m": 1.0, "free_fraction": 0.5,
+                     "used_by": []}]  # fmt: skip
+    r = runner.invoke(app, ["maps", "list"], env={"COLUMNS": "200"})
+    assert r.exit_code == 0, r.output
+    assert name in r.stdout
+    r = cli("eval", "--policy", "oracle", "--map", "map:abcd")  # a server's map, to the library
+    assert r.exit_code == 2 and not r.stdout
+    assert "--map: map:abcd: names a map uploaded to a QuickNav service" in r.stderr, r.stderr
+
+
+def test_bench__an_option_before_a_subcommand_is_refused_not_ignored(tmp_path):
+    """`quicknav bench --grid 300 rooms` ran rooms' default grids, the --grid (the env
+    benchmark's) ignored: refused, saying where the option goes; nothing runs."""
+    r = cli("bench", "--grid", "300", "rooms", "--out", str(tmp_path))
+    assert r.exit_code == 2 and "put it after the command: quicknav bench rooms --grid" in r.stderr
+    r = cli("bench", "--steps", "1000", "train", "--out", str(tmp_path))
+    assert r.exit_code == 2 and "`train` has no --steps" in r.stderr, r.stderr
+    assert not any(tmp_path.iterdir())
+    r = cli("bench", "rooms", "--grid", "300", "--out", str(tmp_path))
+    assert r.exit_code == 2 and "--grid 300: allowed range 4..256 (EnvConfig.grid_size)" in r.stderr
 
 
 def test_errors__go_to_stderr_with_a_nonzero_exit(service):
