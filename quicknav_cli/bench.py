@@ -13,6 +13,7 @@ from rich.console import Console
 
 from quicknav_cli.common import (
     SetOpt,
+    checked_grids,
     console,
     enable_compilation_cache,
     expose_cpu_devices,
@@ -25,18 +26,6 @@ app = typer.Typer(
     help="Benchmarks. Without a subcommand: environment throughput, JAX vs the NumPy twin.",
     invoke_without_command=True,
 )
-
-
-def checked_grids(grid: list[int] | None, default) -> list[int]:
-    """The --grid values (or the default), each within EnvConfig.grid_size's range."""
-    from quicknav_core.config.env import GRID_SIZE_RANGE
-
-    lo, hi = GRID_SIZE_RANGE
-    grids = grid or list(default)
-    bad = [g for g in grids if not lo <= g <= hi]
-    if bad:
-        fail(f"--grid {bad[0]}: allowed range {lo}..{hi} (EnvConfig.grid_size)")
-    return grids
 
 
 def show_with_targets(table, width: int, targets: list[dict], unit: str = "") -> None:

@@ -166,3 +166,15 @@ def service_settings(**overrides):
 
     redact.install(settings)  # before any log handler takes hold of stdout or stderr
     return settings
+
+
+def checked_grids(grid: list[int] | None, default) -> list[int]:
+    """The --grid values (or the default), each within EnvConfig.grid_size's range."""
+    from quicknav_core.config.env import GRID_SIZE_RANGE
+
+    lo, hi = GRID_SIZE_RANGE
+    grids = grid or list(default)
+    bad = [g for g in grids if not lo <= g <= hi]
+    if bad:
+        fail(f"--grid {bad[0]}: allowed range {lo}..{hi} (EnvConfig.grid_size)")
+    return grids

@@ -148,10 +148,9 @@ def rooms(
     seed: Annotated[int, typer.Option(min=0, help="Room seed.")] = 0,
 ) -> None:
     """Draw generated rooms for several grid sizes (the paper's room-generation figure)."""
-    grids = grid or [4, 8, 16]
-    bad = [g for g in grids if not 4 <= g <= 128]
-    if bad:
-        fail(f"--grid {bad[0]}: allowed range 4..128")
+    from quicknav_cli.common import checked_grids
+
+    grids = checked_grids(grid, (4, 8, 16))
     path = draw_rooms(out, tuple(grids), per_row=per_row, seed=seed)
     console.print(f"wrote {path}")
 

@@ -238,22 +238,29 @@ def _rollout(req: RolloutRequest, limits: Limits, runtime, loc: Loc) -> Items:
         return items
     if items := rooms(req.env, limits, runtime, loc):
         return items
-    from quicknav_core.train.memory import eval_memory, rollout_memory
+    est, where = stream_estimate(req)
+    return memory(est, limits, loc(where))
 
+
+def stream_estimate(req: RolloutRequest | PolicyRequest):
+    """A gRPC stream's estimated peak memory (``train.memory.Estimate``) and the request field
+    its largest part follows: what admission holds one stream to, and what a server's open streams
+    add up to (``quicknav_service.rollout.common.StreamMemory``)."""
+    from quicknav_core.train.memory import eval_memory, policy_memory, rollout_memory
+
+    if isinstance(req, PolicyRequest):
+        est = policy_memory(req.config)
+        return est, est.field
     if req.policy:
         est = eval_memory(EvalConfig(env=req.env, episodes=req.num_envs, split=req.split,
                                      gif_episodes=req.num_envs))  # fmt: skip
-        where = "num_envs" if est.field in ("episodes", "trajectories") else est.field
-    else:
-        est = rollout_memory(req.env, req.num_envs, req.split)
-        where = est.field
-    return memory(est, limits, loc(where))
+        return est, "num_envs" if est.field in ("episodes", "trajectories") else est.field
+    est = rollout_memory(req.env, req.num_envs, req.split)
+    return est, est.field
 
 
 def _policy(req: PolicyRequest, limits: Limits, loc: Loc) -> Items:
     if items := env_limits(req.config.env, limits, loc, "env."):
         return items
-    from quicknav_core.train.memory import policy_memory
-
-    est = policy_memory(req.config)
-    return memory(est, limits, loc(est.field))
+    est, where = stream_estimate(req)
+    return memory(est, limits, loc(where))

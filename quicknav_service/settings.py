@@ -57,6 +57,12 @@ class Settings(BaseSettings):
         description="`quicknav worker` also serves gRPC Rollout on this port (unset: it does not)",
     )
     rollout_max_sessions: int = Field(16, ge=1, le=10_000, description="concurrent rollout streams")
+    rollout_memory_mb: int | None = Field(
+        None, ge=64, le=16_777_216,
+        description="memory a gRPC server's open Rollout streams may hold together, by their"
+        " admission estimates (a Start past it is refused RESOURCE_EXHAUSTED until a stream"
+        " ends); unset: max_job_memory_mb, the server admitted as one job",
+    )  # fmt: skip
     grpc_max_message_mb: int = Field(64, ge=1, le=2047, description="largest gRPC message, MiB")
     rollout_policy_max_envs: int = Field(256, ge=1, le=1024, description="envs in policy mode")
     rollout_idle_s: float = Field(

@@ -26,13 +26,14 @@ from quicknav_core.runtime import Runtime
 from quicknav_service import auth
 from quicknav_service.rollout.common import (
     Refused,
+    StreamMemory,
     authenticate,
     bounded,
     is_plain_id,
     read_next,
     run_copy,
 )
-from quicknav_service.rollout.start import StartRequest, admit_start, read_start
+from quicknav_service.rollout.start import StartRequest, admit_start, read_start, start_loc
 from quicknav_service.settings import Settings
 
 log = logging.getLogger("quicknav.rollout")
@@ -103,6 +104,11 @@ class RolloutServicer(pb_grpc.RolloutServiceServicer):
             max_workers=min(32, settings.rollout_max_sessions + 2), thread_name_prefix="rollout"
         )
         self.active_sessions = 0
+        # what the open streams hold together, by their estimates (one server, one budget)
+        budget = settings.rollout_memory_mb or settings.max_job_memory_mb
+        setting = ("QUICKNAV_ROLLOUT_MEMORY_MB" if settings.rollout_memory_mb
+                   else "QUICKNAV_MAX_JOB_MEMORY_MB, as QUICKNAV_ROLLOUT_MEMORY_MB is unset")  # fmt: skip
+        self.memory = StreamMemory(budget, setting)
         self.auth_limiter = auth_limiter if auth_limiter is not None else auth.make_limiter(settings)
         self.env_steps_served = 0  # env steps (steps x envs) over every stream, for /metrics
         self._handlers = {
@@ -148,6 +154,7 @@ class RolloutServicer(pb_grpc.RolloutServiceServicer):
                 task.cancel()
             if session.counted:
                 self.active_sessions -= 1
+                self.memory.give_back(session.id)
 
     # ------------------------------------------------------------------ handlers
     async def _start(self, session: Session, start: pb.Start, context) -> bool:
@@ -172,6 +179,11 @@ class RolloutServicer(pb_grpc.RolloutServiceServicer):
                 f" (QUICKNAV_ROLLOUT_MAX_SESSIONS) is {s.rollout_max_sessions}: close one or retry"
                 " later",
             )
+        from quicknav_core.admission import stream_estimate
+
+        estimate, _ = stream_estimate(req.rollout)  # (policy mode: an evaluation's, per episode)
+        self.memory.take(session.id, estimate, lambda path: start_loc(
+            "num_envs" if path in ("episodes", "trajectories") else path.removeprefix("env.")))
         self.active_sessions += 1
         session.counted = True
         if policy_run:

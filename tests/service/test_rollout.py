@@ -251,6 +251,50 @@ def test_rollout__session_limit_is_resource_exhausted(server):
     assert server.servicer.active_sessions == 0
 
 
+def test_rollout__open_streams_together_stay_within_the_servers_memory_budget(tmp_path):
+    """QUICKNAV_ROLLOUT_MEMORY_MB: each stream's estimate alone fits any budget, but the server
+    holds its runtime once and every open stream's envs together; a Start that would take the sum
+    past the budget is RESOURCE_EXHAUSTED naming the field, the held total and the setting, and a
+    stream that ends gives its part back."""
+    from quicknav_core.admission import RolloutRequest, stream_estimate
+    from quicknav_core.train.memory import MB, megabytes
+
+    n = 4096
+    est, _ = stream_estimate(RolloutRequest(EnvConfig(**CONFIG), n))
+    own = est.total - est.parts["runtime"]
+    assert own > 10 * MB  # (the env batch of 4,096 envs; what the streams add up)
+    budget = megabytes(est.parts["runtime"] + 2.5 * own)  # room for two streams, not three
+    settings = Settings(data_dir=tmp_path, host="127.0.0.1", grpc_port=0, rollout_memory_mb=budget)
+    srv = BackgroundServer(settings, port=0).start()
+    clients = []
+    try:
+        for _ in range(2):
+            clients.append(RolloutClient(_target(srv)))
+            clients[-1].start(num_envs=n, config=CONFIG)
+        assert srv.servicer.memory.held_mb == megabytes(est.parts["runtime"] + 2 * own)
+
+        def third():
+            with RolloutClient(_target(srv)) as rc:
+                rc.start(num_envs=n, config=CONFIG)
+
+        code, msg = _code(third)
+        assert code == grpc.StatusCode.RESOURCE_EXHAUSTED, msg
+        assert msg.startswith("start.num_envs: this stream needs about") and "2 open stream(s)" in msg
+        assert f"above the {budget:,} MB this server gives its streams (QUICKNAV_ROLLOUT_MEMORY_MB)" in msg
+        clients.pop().close()  # one ends: its part comes back, and a third fits again
+        deadline = time.time() + 5
+        while srv.servicer.memory.streams > 1 and time.time() < deadline:
+            time.sleep(0.05)
+        clients.append(RolloutClient(_target(srv)))
+        clients[-1].start(num_envs=n, config=CONFIG)
+        assert srv.servicer.memory.streams == 2
+    finally:
+        for c in clients:
+            c.close()
+        srv.stop()
+    assert srv.servicer.memory.streams == 0 and srv.servicer.memory.held_mb == 0
+
+
 def test_rollout__token_and_idle_timeout(strict_server):
     t = _target(strict_server)
     code, msg = _code(lambda: RolloutClient(t).start(num_envs=1, config=CONFIG))

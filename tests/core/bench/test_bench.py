@@ -76,4 +76,4 @@ def test_cli_bench__prints_table_and_writes_files(tmp_path):
     assert "jax-b4" in result.output and "numpy" in result.output
     assert (tmp_path / "bench.json").exists() and (tmp_path / "bench_batch.png").exists()
     bad = CliRunner().invoke(app, ["bench", "--grid", "2"])
-    assert bad.exit_code != 0 and "4..128" in bad.output
+    assert bad.exit_code != 0 and "4..256" in bad.output

@@ -42,7 +42,7 @@ def test_cli_bench_rooms__prints_table_and_writes_json(tmp_path):
     assert "8x8" in result.output and "centre" in result.output and "met" in result.output
     row = json.loads((tmp_path / "bench_rooms.json").read_text())["results"][0]
     assert row["carver"] == "centre" and row["train_rooms"] == 1024
-    bad = CliRunner().invoke(app, ["bench", "rooms", "--grid", "200"])
-    assert bad.exit_code != 0 and "4..128" in bad.output
+    bad = CliRunner().invoke(app, ["bench", "rooms", "--grid", "300"])
+    assert bad.exit_code != 0 and "4..256" in bad.output
     bad = CliRunner().invoke(app, ["bench", "rooms", "--carver", "fast"])
     assert bad.exit_code != 0 and "carved" in bad.output
