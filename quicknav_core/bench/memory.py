@@ -62,6 +62,12 @@ ROLLOUT_CASES: tuple[tuple[str, str, int], ...] = (
     ("rollout-building-256", "building", 256),
     ("rollout-building-4096", "building", 4096),
 )
+# (case, preset, envs per stream, streams): several Rollout streams open at once in one server,
+# stepped side by side as its executor threads step them; admitted together by
+# ``train.memory.together`` (QUICKNAV_ROLLOUT_MEMORY_MB)
+ROLLOUT_TOGETHER_CASES: tuple[tuple[str, str, int, int], ...] = (
+    ("rollout-building-4096-x4", "building", 4096, 4),
+)
 ROLLOUT_STEPS = 20
 # each stream case runs twice and the higher peak counts: the same rollout case read 468 and 513 MB
 # in two runs (XLA compiles in threads, and how their work overlaps varies), and admission must
@@ -88,13 +94,17 @@ import quicknav_service.rollout.server  # noqa: F401
 from quicknav_core.config import EnvConfig
 from quicknav_core.env.batch import BatchedEnv
 from quicknav_core.runtime import Runtime
+from concurrent.futures import ThreadPoolExecutor
 case = json.loads(sys.argv[1])
-env = BatchedEnv(EnvConfig.model_validate(case["env"]), case["num_envs"], seed=0, split="train",
-                 runtime=Runtime())
-env.reset()
+runtime, n = Runtime(), case["num_envs"]  # one runtime, as the server's streams share it
+envs = [BatchedEnv(EnvConfig.model_validate(case["env"]), n, seed=i, split="train", runtime=runtime)
+        for i in range(case.get("streams", 1))]
 rng = np.random.default_rng(0)
-for _ in range(case["steps"]):
-    env.step(rng.uniform(-1.0, 1.0, (case["num_envs"], 2)).astype(np.float32))
+with ThreadPoolExecutor(len(envs)) as pool:
+    list(pool.map(lambda env: env.reset(), envs))
+    for _ in range(case["steps"]):
+        actions = [rng.uniform(-1.0, 1.0, (n, 2)).astype(np.float32) for _ in envs]
+        list(pool.map(lambda pair: pair[0].step(pair[1]), zip(envs, actions)))
 print(json.dumps({"peak_rss": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024}))
 """
 
@@ -197,24 +207,31 @@ def eval_peak_rss(cfg) -> int:
     return _child_peak(_EVAL_CHILD, cfg.model_dump_json(), None, timeout=7200)
 
 
-def rollout_case(preset: str, num_envs: int) -> dict[str, Any]:
-    """What a Rollout case's process is given: the preset's env and the stream's envs."""
+def rollout_case(preset: str, num_envs: int, streams: int = 1) -> dict[str, Any]:
+    """What a Rollout case's process is given: the preset's env, each stream's envs, streams."""
     from quicknav_core.config import resolve_train
 
     env = resolve_train({"preset": preset}).env
-    return {"env": env.model_dump(mode="json"), "num_envs": num_envs, "steps": ROLLOUT_STEPS}
+    return {"env": env.model_dump(mode="json"), "num_envs": num_envs, "steps": ROLLOUT_STEPS,
+            "streams": streams}  # fmt: skip
 
 
-def run_rollout_cases(cases=ROLLOUT_CASES) -> list[dict[str, Any]]:
+def rollout_estimate(case: dict[str, Any]):
+    """What admission holds the case's streams to, together (one server's runtime)."""
     from quicknav_core.config import EnvConfig
-    from quicknav_core.train.memory import rollout_memory
+    from quicknav_core.train.memory import rollout_memory, together
 
+    one = rollout_memory(EnvConfig.model_validate(case["env"]), case["num_envs"])
+    return together([one] * case["streams"])
+
+
+def run_rollout_cases(cases=ROLLOUT_CASES + ROLLOUT_TOGETHER_CASES) -> list[dict[str, Any]]:
     rows = []
-    for name, preset, num_envs in cases:
-        case = rollout_case(preset, num_envs)
-        est = rollout_memory(EnvConfig.model_validate(case["env"]), num_envs)
+    for name, preset, num_envs, *streams in cases:
+        case = rollout_case(preset, num_envs, *streams)
         runs = [_child_peak(_ROLLOUT_CHILD, json.dumps(case), None, timeout=1800) for _ in range(STREAM_RUNS)]
-        rows.append(_row(name, {"preset": preset, "num_envs": num_envs}, est, runs))
+        what = {"preset": preset, "num_envs": num_envs, **({"streams": streams[0]} if streams else {})}
+        rows.append(_row(name, what, rollout_estimate(case), runs))
     return rows
 
 
@@ -299,7 +316,8 @@ def main() -> None:
 
     from quicknav_core.bench.machine import machine_info
 
-    names = [c[0] for group in (CASES, EVAL_CASES, ROLLOUT_CASES, POLICY_CASES) for c in group]
+    groups = (CASES, EVAL_CASES, ROLLOUT_CASES, ROLLOUT_TOGETHER_CASES, POLICY_CASES)
+    names = [c[0] for group in groups for c in group]
     ap = argparse.ArgumentParser(description="Memory admission's estimates beside measured peaks.")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/memory.json"))
     ap.add_argument("--case", action="append", choices=names, metavar="NAME",
@@ -307,7 +325,7 @@ def main() -> None:
     args = ap.parse_args()
     chosen = [c for c in CASES if not args.case or c[0] in args.case]
     evals = [c for c in EVAL_CASES if not args.case or c[0] in args.case]
-    rollouts = [c for c in ROLLOUT_CASES if not args.case or c[0] in args.case]
+    rollouts = [c for c in ROLLOUT_CASES + ROLLOUT_TOGETHER_CASES if not args.case or c[0] in args.case]
     policies = [c for c in POLICY_CASES if not args.case or c[0] in args.case]
     rows, eval_rows = run(chosen), run_eval_cases(evals)
     rollout_rows, policy_rows = run_rollout_cases(rollouts), run_policy_cases(policies)
@@ -323,7 +341,7 @@ def main() -> None:
                                     "rows": merged(kept.get("rows", []), rows, CASES),
                                     "eval_rows": merged(kept.get("eval_rows", []), eval_rows, EVAL_CASES),
                                     "rollout_rows": merged(kept.get("rollout_rows", []), rollout_rows,
-                                                           ROLLOUT_CASES),
+                                                           ROLLOUT_CASES + ROLLOUT_TOGETHER_CASES),
                                     "policy_rows": merged(kept.get("policy_rows", []), policy_rows,
                                                           POLICY_CASES)},
                                    indent=2))  # fmt: skip

@@ -209,6 +209,38 @@ def rollout_memory(env: EnvConfig, num_envs: int, split: str = "train") -> Estim
     return Estimate(parts, {"room banks": f"{split}_rooms", "env batch": "num_envs"})
 
 
+# what part of a stream's batch stays resident between its steps: the rest is one step's
+# transients, which streams stepped side by side did not add up (four `building` streams of
+# 4,096 envs stepped by four threads in one process on 2 cores peaked at 751 MB, one alone at 700
+# MB: each further stream added about its states and observations, 17 MB, not its 112 MB peak)
+RESIDENT_SHARE = {"env batch": 1.0 / ROLLOUT_BATCH_FACTOR, "episode batch": 1.0 / TRANSIENT_FACTOR}
+TRANSIENTS = "one step's transients"
+
+
+def together(estimates: list[Estimate]) -> Estimate:
+    """The peak of several streams open at once in one server process: its runtime once (the
+    largest any of them needs), every stream's room banks and resident batch added up, and the
+    largest stream's step transients once (a gRPC server's open Rollout streams,
+    ``quicknav_service.rollout.common.StreamMemory``). One stream's is its own estimate."""
+    parts: dict[str, int] = {"runtime": 0}
+    fields: dict[str, str] = {TRANSIENTS: "num_envs"}
+    transients = 0
+    for est in estimates:
+        extra = 0
+        for name, size in est.parts.items():
+            if name == "runtime":
+                parts[name] = max(parts[name], size)
+                continue
+            kept = int(size * RESIDENT_SHARE.get(name, 1.0))
+            parts[name] = parts.get(name, 0) + kept
+            extra += size - kept
+        transients = max(transients, extra)
+        fields = {**est.fields, **fields}
+    if transients:
+        parts[TRANSIENTS] = transients
+    return Estimate(parts, fields)
+
+
 def policy_row_floats(cfg: TrainConfig) -> int:
     """Floats one row of a policy's act holds: its observation (every frame), its carry, and its
     widest activations (an MLP's hidden layers, an LSTM's gates, GTrXL's memory and its keys and

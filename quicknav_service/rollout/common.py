@@ -36,31 +36,31 @@ class Refused(Exception):
 
 class StreamMemory:
     """The memory a server's open Rollout streams hold together, by their admission estimates
-    (``quicknav_core.admission.stream_estimate``): the process's runtime once (the largest any
-    open stream's kind needs) and each stream's own parts (its room banks and env batch, or its
-    episodes in policy mode) added up. A stream that would take the sum past ``budget_mb`` is
-    refused RESOURCE_EXHAUSTED; its parts are given back when it ends. Streams on the same rooms
-    share their banks in the runtime's cache, so the sum is an upper bound."""
+    (``quicknav_core.admission.stream_estimate``), added up by ``train.memory.together``: the
+    process's runtime once, each stream's room banks and resident envs (or episodes in policy
+    mode), and the largest stream's step transients once. A stream that would take the sum past
+    ``budget_mb`` is refused RESOURCE_EXHAUSTED; its parts are given back when it ends. Streams on
+    the same rooms share their banks in the runtime's cache, so the banks' sum is an upper bound."""
 
     RUNTIME = "runtime"
 
     def __init__(self, budget_mb: int, setting: str):
         self.budget_mb = budget_mb
         self.setting = setting  # the environment variable that sets the budget, for the message
-        self._held: dict[str, dict[str, int]] = {}
+        self._held: dict[str, object] = {}  # stream -> its Estimate
         self._lock = threading.Lock()
 
-    @classmethod
-    def _total(cls, held) -> int:
-        runtime = max((parts.get(cls.RUNTIME, 0) for parts in held), default=0)
-        return runtime + sum(v for parts in held for k, v in parts.items() if k != cls.RUNTIME)
+    def _total(self, extra=()) -> int:
+        from quicknav_core.train.memory import together
+
+        return together([*self._held.values(), *extra]).total
 
     @property
     def held_mb(self) -> int:
         from quicknav_core.train.memory import megabytes
 
         with self._lock:
-            return megabytes(self._total(self._held.values()))
+            return megabytes(self._total())
 
     @property
     def streams(self) -> int:
@@ -76,20 +76,18 @@ class StreamMemory:
         own = {k: v for k, v in estimate.parts.items() if k != self.RUNTIME}
         largest = max(own, key=own.get) if own else ""
         where = ".".join(map(str, loc(estimate.fields.get(largest) or "num_envs")))
-        parts = ", ".join(f"{k} {megabytes(v):,} MB" for k, v in sorted(own.items(), key=lambda kv: -kv[1]))
-        runtime = megabytes(estimate.parts.get(self.RUNTIME, 0))
         with self._lock:
-            before = self._total(self._held.values())
-            after = self._total([*self._held.values(), estimate.parts])
+            before, after = self._total(), self._total([estimate])
             if megabytes(after) > self.budget_mb:
                 raise Refused(grpc.StatusCode.RESOURCE_EXHAUSTED, (
-                    f"{where}: this stream needs about {megabytes(after - before):,} MB more"
-                    f" ({parts}; the runtime, {runtime:,} MB, counted once) while the"
+                    f"{where}: this stream adds about {megabytes(after - before):,} MB (alone it"
+                    f" would peak at {megabytes(estimate.total):,} MB: {estimate.describe()}; the"
+                    " runtime and one step's transients are counted once) while the"
                     f" {len(self._held)} open stream(s) hold"
                     f" about {megabytes(before):,} MB; together {megabytes(after):,} MB, above the"
                     f" {self.budget_mb:,} MB this server gives its streams ({self.setting}): close a"
                     " stream, ask for fewer envs, or retry later"))  # fmt: skip
-            self._held[key] = dict(estimate.parts)
+            self._held[key] = estimate
 
     def give_back(self, key: str) -> None:
         with self._lock:

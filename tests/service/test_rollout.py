@@ -257,13 +257,13 @@ def test_rollout__open_streams_together_stay_within_the_servers_memory_budget(tm
     past the budget is RESOURCE_EXHAUSTED naming the field, the held total and the setting, and a
     stream that ends gives its part back."""
     from quicknav_core.admission import RolloutRequest, stream_estimate
-    from quicknav_core.train.memory import MB, megabytes
+    from quicknav_core.train.memory import MB, megabytes, together
 
     n = 4096
     est, _ = stream_estimate(RolloutRequest(EnvConfig(**CONFIG), n))
-    own = est.total - est.parts["runtime"]
-    assert own > 10 * MB  # (the env batch of 4,096 envs; what the streams add up)
-    budget = megabytes(est.parts["runtime"] + 2.5 * own)  # room for two streams, not three
+    two, three = together([est] * 2).total, together([est] * 3).total
+    assert three - two > 1 * MB  # (the resident envs of 4,096 of them; what the streams add up)
+    budget = megabytes(two)  # room for two streams, not three
     settings = Settings(data_dir=tmp_path, host="127.0.0.1", grpc_port=0, rollout_memory_mb=budget)
     srv = BackgroundServer(settings, port=0).start()
     clients = []
@@ -271,7 +271,7 @@ def test_rollout__open_streams_together_stay_within_the_servers_memory_budget(tm
         for _ in range(2):
             clients.append(RolloutClient(_target(srv)))
             clients[-1].start(num_envs=n, config=CONFIG)
-        assert srv.servicer.memory.held_mb == megabytes(est.parts["runtime"] + 2 * own)
+        assert srv.servicer.memory.held_mb == megabytes(two)
 
         def third():
             with RolloutClient(_target(srv)) as rc:
@@ -279,7 +279,7 @@ def test_rollout__open_streams_together_stay_within_the_servers_memory_budget(tm
 
         code, msg = _code(third)
         assert code == grpc.StatusCode.RESOURCE_EXHAUSTED, msg
-        assert msg.startswith("start.num_envs: this stream needs about") and "2 open stream(s)" in msg
+        assert msg.startswith("start.num_envs: this stream adds about") and "2 open stream(s)" in msg
         assert f"above the {budget:,} MB this server gives its streams (QUICKNAV_ROLLOUT_MEMORY_MB)" in msg
         clients.pop().close()  # one ends: its part comes back, and a third fits again
         deadline = time.time() + 5

@@ -13,7 +13,13 @@ import json
 
 import pytest
 
-from quicknav_core.bench.memory import POLICY_CASES, ROLLOUT_CASES, rollout_case
+from quicknav_core.bench.memory import (
+    POLICY_CASES,
+    ROLLOUT_CASES,
+    ROLLOUT_TOGETHER_CASES,
+    rollout_case,
+    rollout_estimate,
+)
 from quicknav_core.config import EnvConfig, resolve_train
 from quicknav_core.train.memory import MB, POLICY_MAX_ROWS, policy_memory, rollout_memory
 from tests.journeys.readme import ROOT
@@ -29,7 +35,7 @@ def _check(name: str, est, measured_mb: int) -> None:
 
 
 def test_stream_admission__every_case_has_been_measured():
-    assert set(ROLLOUTS) == {c[0] for c in ROLLOUT_CASES}
+    assert set(ROLLOUTS) == {c[0] for c in ROLLOUT_CASES + ROLLOUT_TOGETHER_CASES}
     assert set(POLICIES) == {c[0] for c in POLICY_CASES}
     # a policy of every network kind, and rollouts with and without the plan's programs
     assert {resolve_train({"preset": p}).network.kind for _, p in POLICY_CASES} == {"mlp", "lstm", "gtrxl"}
@@ -42,6 +48,23 @@ def test_rollout_admission__estimate_within_ten_percent_of_the_measured_peak(nam
     assert (row["preset"], row["num_envs"]) == (preset, num_envs), row  # the case that was measured
     env = EnvConfig.model_validate(rollout_case(preset, num_envs)["env"])
     _check(name, rollout_memory(env, num_envs), row["measured_mb"])
+
+
+@pytest.mark.parametrize("name,preset,num_envs,streams", ROLLOUT_TOGETHER_CASES,
+                         ids=[c[0] for c in ROLLOUT_TOGETHER_CASES])  # fmt: skip
+def test_rollout_admission__streams_open_together_within_ten_percent(name, preset, num_envs, streams):
+    """Several streams in one server (QUICKNAV_ROLLOUT_MEMORY_MB): the runtime once and every
+    stream's banks and envs added up (``train.memory.together``), against the measured peak of
+    one process stepping them side by side; counting the runtime per stream would be far above."""
+    from quicknav_core.train.memory import together
+
+    row = ROLLOUTS[name]
+    assert (row["preset"], row["num_envs"], row["streams"]) == (preset, num_envs, streams), row
+    case = rollout_case(preset, num_envs, streams)
+    _check(name, rollout_estimate(case), row["measured_mb"])
+    one = rollout_memory(EnvConfig.model_validate(case["env"]), num_envs)
+    assert together([one] * streams).total == rollout_estimate(case).total
+    assert streams * one.total > 1.1 * row["measured_mb"] * MB  # the naive sum would not pass
 
 
 @pytest.mark.parametrize("name,preset", POLICY_CASES, ids=[c[0] for c in POLICY_CASES])
