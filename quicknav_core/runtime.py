@@ -53,6 +53,11 @@ class Cache:
     def __contains__(self, key: Hashable) -> bool:
         return key in self._items
 
+    def __getitem__(self, key: Hashable) -> Any:
+        """The value kept for ``key`` (KeyError when none), not counted as a use."""
+        with self._guard:
+            return self._items[key]
+
     def get(self, key: Hashable, make: Callable[[], T]) -> T:
         with self._guard:
             if key in self._items:

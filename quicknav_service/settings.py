@@ -65,6 +65,10 @@ class Settings(BaseSettings):
     )  # fmt: skip
     grpc_max_message_mb: int = Field(64, ge=1, le=2047, description="largest gRPC message, MiB")
     rollout_policy_max_envs: int = Field(256, ge=1, le=1024, description="envs in policy mode")
+    rollout_policy_cache: int = Field(
+        8, ge=1, le=1024, description="trained policies a gRPC server keeps loaded for the Policy"
+        " stream (the least recently loaded go first; an open stream keeps its own)",
+    )  # fmt: skip
     rollout_idle_s: float = Field(
         300.0,
         gt=0.0,

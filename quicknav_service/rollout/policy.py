@@ -12,7 +12,6 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
-import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,7 +23,7 @@ from quicknav_client.proto.quicknav.v1 import rollout_pb2 as pb
 from quicknav_client.proto.quicknav.v1 import rollout_pb2_grpc as pb_grpc
 from quicknav_client.tensors import TensorError, decode, encode
 
-from quicknav_core.runtime import Runtime
+from quicknav_core.runtime import Cache, Runtime
 from quicknav_core.train.memory import POLICY_MAX_ROWS
 from quicknav_service import auth
 from quicknav_service.rollout.common import (
@@ -148,8 +147,9 @@ class PolicyServicer(pb_grpc.PolicyServiceServicer):
         self.runtime = runtime if runtime is not None else service_runtime(settings)
         self.executor = executor or ThreadPoolExecutor(max_workers=4, thread_name_prefix="policy")
         self.auth_limiter = auth_limiter if auth_limiter is not None else auth.make_limiter(settings)
-        self.policies: dict[str, LoadedPolicy] = {}
-        self._loading = threading.Lock()
+        # the trained policies kept loaded (networks, jitted act): the least recently loaded go
+        # past QUICKNAV_ROLLOUT_POLICY_CACHE; a stream keeps acting with the one it loaded
+        self.policies: Cache = Cache(settings.rollout_policy_cache)
         self.active_sessions = 0
 
     async def Act(self, request_iterator, context: grpc.aio.ServicerContext):
@@ -208,10 +208,7 @@ class PolicyServicer(pb_grpc.PolicyServiceServicer):
             raise Refused(grpc.StatusCode.NOT_FOUND,
                           f"load.job_id={job_id!r}: no train job with a checkpoint by that id in this"
                           " service's artifacts")  # fmt: skip
-        with self._loading:
-            if job_id not in self.policies:
-                self.policies[job_id] = self._build(run_dir, job_id)
-            return self.policies[job_id]
+        return self.policies.get(job_id, lambda: self._build(run_dir, job_id))
 
     def _build(self, run_dir: Path, job_id: str) -> LoadedPolicy:
         from quicknav_core.admission import PolicyRequest, admit

@@ -89,6 +89,35 @@ def test_policy_stream__two_robots_streams_keep_their_own_state(served):
     assert srv.servicer.policy_servicer.policies[JOB].requests == 12
 
 
+def test_policy_stream__a_server_keeps_its_cache_of_policies_not_every_one_it_loaded(served, tmp_path):
+    """QUICKNAV_ROLLOUT_POLICY_CACHE=1: a server that loads a second job's policy lets the first
+    go (it kept every one it ever loaded, for as long as it ran), and a stream that loaded the
+    first still acts with it, as the JAX policy does."""
+    import shutil
+
+    _, config, policy = served
+    settings = Settings(data_dir=tmp_path, host="127.0.0.1", grpc_port=0, rollout_policy_cache=1)
+    for job in ("job-a", "job-b"):
+        shutil.copytree(served[0].settings.artifacts_dir / JOB, settings.artifacts_dir / job)
+    srv = BackgroundServer(settings, port=0).start()
+    target = f"127.0.0.1:{srv.port}"
+    obs = [random_observations(config.env, 2, seed=t) for t in range(3)]
+    starts = [np.ones(2, bool), np.zeros(2, bool), np.zeros(2, bool)]
+    try:
+        with RemotePolicy(target) as first, RemotePolicy(target) as second:
+            first.load("job-a", rows=2)
+            got = [first.act(obs[0], starts[0])]
+            second.load("job-b", rows=2)
+            cache = srv.servicer.policy_servicer.policies
+            assert len(cache) == 1 and "job-b" in cache and "job-a" not in cache
+            got += [first.act(o, s) for o, s in zip(obs[1:], starts[1:], strict=True)]
+            second.act(obs[0], starts[0])
+        for t, (a, b) in enumerate(zip(got, reference(policy, obs, starts), strict=True)):
+            np.testing.assert_allclose(a, b, atol=1e-5, err_msg=f"step {t}")
+    finally:
+        srv.stop()
+
+
 def test_policy_batcher__requests_of_one_loop_tick_run_as_one_call(served):
     """The batcher itself: three streams' requests that arrive together are one jitted call, and
     each gets back exactly what it would have got alone."""
