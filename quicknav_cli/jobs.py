@@ -271,6 +271,9 @@ def jobs_submit(
     if kind != "eval" and map is not None:
         fail("--map is for eval jobs (a train job names its maps: --set env.rooms=maps --set"
              " 'env.maps.train=[\"map:<id>\"]')")
+    if map is not None and not map.startswith("map:") and Path(map).is_file():
+        fail(f"--map {map}: a file on this machine, which the server cannot read; upload it first"
+             f" (quicknav maps upload {map}) and pass the map:<id> it prints")  # fmt: skip
     if kind != "eval" and shield:
         fail("--shield is for eval jobs")
     if stochastic:
