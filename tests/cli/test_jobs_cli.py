@@ -309,7 +309,7 @@ def test_text__names_and_ids_print_as_written_never_as_markup_or_emoji(service):
     office = str(Path(__file__).parents[2] / "examples/maps/office.yaml")
     r = cli("jobs", "submit", "eval", "--job", JOB_ID, "--map", office)
     assert r.exit_code == 2 and f"(quicknav maps upload {office})" in r.stderr, r.stderr
-    assert not service.requests  # a file the server cannot read is not sent
+    assert not service.bodies()  # a file the server cannot read is not sent
     r = cli("eval", "--policy", "oracle", "--map", "map:abcd")  # a server's map, to the library
     assert r.exit_code == 2 and not r.stdout
     assert "--map: map:abcd: names a map uploaded to a QuickNav service" in r.stderr, r.stderr
