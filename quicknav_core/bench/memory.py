@@ -67,6 +67,7 @@ ROLLOUT_CASES: tuple[tuple[str, str, int], ...] = (
 # ``train.memory.together`` (QUICKNAV_ROLLOUT_MEMORY_MB)
 ROLLOUT_TOGETHER_CASES: tuple[tuple[str, str, int, int], ...] = (
     ("rollout-building-4096-x4", "building", 4096, 4),
+    ("rollout-demo-4096-x16", "demo", 4096, 16),
 )
 ROLLOUT_STEPS = 20
 # each stream case runs twice and the higher peak counts: the same rollout case read 468 and 513 MB
