@@ -181,6 +181,10 @@ class RolloutEndpoint(BaseModel):
     sessions: int = Field(0, description="open Rollout streams")
     max_sessions: int | None = None
     env_steps_served: int = 0
+    memory_held_mb: int = Field(0, description="what the open Rollout streams hold together, by"
+                                " their admission estimates, MB")  # fmt: skip
+    memory_budget_mb: int | None = Field(None, description="what they may hold together"
+                                         " (QUICKNAV_ROLLOUT_MEMORY_MB), MB")  # fmt: skip
 
 
 class RolloutEndpoints(BaseModel):

@@ -109,11 +109,26 @@ class StoreCollector(Collector):
         served = CounterMetricFamily("quicknav_rollout_env_steps_served",
                                      "Env steps served over gRPC Rollout per announced server"
                                      " (since it started).", labels=["address", "worker"])  # fmt: skip
+        held = GaugeMetricFamily("quicknav_rollout_memory_held_mb",
+                                 "Memory the open gRPC Rollout streams hold together by their"
+                                 " admission estimates, per announced server.",
+                                 labels=["address", "worker"])  # fmt: skip
+        budget = GaugeMetricFamily("quicknav_rollout_memory_budget_mb",
+                                   "Memory the open gRPC Rollout streams may hold together"
+                                   " (QUICKNAV_ROLLOUT_MEMORY_MB), per announced server.",
+                                   labels=["address", "worker"])  # fmt: skip
         for e in store.endpoints():
-            streams.add_metric([e["address"], e["worker"]], e.get("sessions", 0))
-            served.add_metric([e["address"], e["worker"]], e.get("env_steps_served", 0))
+            where = [e["address"], e["worker"]]
+            streams.add_metric(where, e.get("sessions", 0))
+            served.add_metric(where, e.get("env_steps_served", 0))
+            if "memory_held_mb" in e:
+                held.add_metric(where, e["memory_held_mb"])
+            if e.get("memory_budget_mb") is not None:
+                budget.add_metric(where, e["memory_budget_mb"])
         yield streams
         yield served
+        yield held
+        yield budget
 
 
 def render(store, settings, embedded_workers: int) -> bytes:

@@ -36,7 +36,7 @@ def advertised_address(configured: str | None, port: int, bound_host: str = "0.0
 
 
 class EndpointAnnouncer:
-    """Renews ``{worker, address, device, sessions, max_sessions}`` every ``interval_s`` (TTL
+    """Renews ``{worker, address, device, sessions, max_sessions, memory_held_mb, ...}`` every ``interval_s`` (TTL
     three intervals) until ``stop()``, which withdraws it. Store outages are waited out.
 
     With ``probe_device`` (a worker, which uses its device anyway) the device is read at once;
@@ -66,7 +66,14 @@ class EndpointAnnouncer:
                 **(self._device or {"backend": None, "device": None, "devices": 0}),
                 "sessions": getattr(self.servicer, "active_sessions", 0),
                 "env_steps_served": getattr(self.servicer, "env_steps_served", 0),
-                "max_sessions": self.max_sessions}  # fmt: skip
+                "max_sessions": self.max_sessions, **self._memory()}  # fmt: skip
+
+    def _memory(self) -> dict[str, int]:
+        """What the open streams hold by their estimates, and the budget (QUICKNAV_ROLLOUT_MEMORY_MB)."""
+        memory = getattr(self.servicer, "memory", None)
+        if memory is None:
+            return {}
+        return {"memory_held_mb": memory.held_mb, "memory_budget_mb": memory.budget_mb}
 
     def announce_once(self) -> bool:
         try:

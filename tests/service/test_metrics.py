@@ -44,7 +44,8 @@ def test_metrics__requests_jobs_heartbeats_durations_and_rollout_servers(tmp_pat
     running = store.claim("w-1", lease_s=30)  # a worker took one; it heartbeats
     store.finish(store.claim("w-2", lease_s=30).id, "w-2", "succeeded", result={})
     store.register_endpoint({"worker": "worker-a", "address": "gpu-a:50051", "sessions": 2,
-                             "env_steps_served": 123_456}, ttl_s=60)  # fmt: skip
+                             "env_steps_served": 123_456, "memory_held_mb": 751,
+                             "memory_budget_mb": 8192}, ttl_s=60)  # fmt: skip
 
     r = client.get("/metrics")
     assert r.status_code == 200 and r.headers["content-type"].startswith("text/plain")
@@ -70,6 +71,8 @@ def test_metrics__requests_jobs_heartbeats_durations_and_rollout_servers(tmp_pat
                  worker="worker-a") == 2  # fmt: skip
     assert value(page, "quicknav_rollout_env_steps_served_total", address="gpu-a:50051",
                  worker="worker-a") == 123_456  # fmt: skip
+    assert value(page, "quicknav_rollout_memory_held_mb", address="gpu-a:50051", worker="worker-a") == 751
+    assert value(page, "quicknav_rollout_memory_budget_mb", address="gpu-a:50051", worker="worker-a") == 8192
 
 
 def test_metrics__summed_over_several_api_processes(tmp_path):

@@ -272,6 +272,11 @@ def test_rollout__open_streams_together_stay_within_the_servers_memory_budget(tm
             clients.append(RolloutClient(_target(srv)))
             clients[-1].start(num_envs=n, config=CONFIG)
         assert srv.servicer.memory.held_mb == megabytes(two)
+        # what the server announces (GET /rollout/endpoints, /metrics) says the same
+        from quicknav_service.rollout.announce import EndpointAnnouncer
+
+        said = EndpointAnnouncer(None, "w", "a:1", srv.servicer, 1.0, 16, probe_device=False).endpoint()
+        assert (said["memory_held_mb"], said["memory_budget_mb"]) == (megabytes(two), budget)
 
         def third():
             with RolloutClient(_target(srv)) as rc:
