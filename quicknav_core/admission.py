@@ -254,9 +254,15 @@ def stream_estimate(req: RolloutRequest | PolicyRequest):
     if req.policy:
         est = eval_memory(EvalConfig(env=req.env, episodes=req.num_envs, split=req.split,
                                      gif_episodes=req.num_envs))  # fmt: skip
-        return est, "num_envs" if est.field in ("episodes", "trajectories") else est.field
-    est = rollout_memory(req.env, req.num_envs, req.split)
-    return est, est.field
+    else:
+        est = rollout_memory(req.env, req.num_envs, req.split)
+    return est, stream_field(est.field)
+
+
+def stream_field(path: str) -> str:
+    """A Rollout stream's estimate field as its request names it: a policy-mode stream's estimate
+    is an evaluation's, whose episodes are the stream's envs and whose env is the Start's config."""
+    return "num_envs" if path in ("episodes", "trajectories") else path.removeprefix("env.")
 
 
 def _policy(req: PolicyRequest, limits: Limits, loc: Loc) -> Items:

@@ -242,9 +242,9 @@ def episode_plan(ep: Episodes, config: EnvConfig, i: int) -> np.ndarray | None:
     if ep.plan_fields is not None and i < ep.plan_fields.shape[0]:
         from quicknav_core.env.plan_np import plan_polyline_np
 
-        cell, g = config.cell_size, ep.plan_fields.shape[1]
-        rc = np.clip(np.floor(np.asarray(start, np.float64)[::-1] / cell).astype(np.int64), 0, g - 1)
-        return plan_polyline_np(ep.plan_fields[i], rc, start, goal, cell)
+        cell = config.cell_size
+        return plan_polyline_np(ep.plan_fields[i], _cell_of(start, cell, ep.plan_fields.shape[1]),
+                                start, goal, cell)  # fmt: skip
     return plan_path(config, ep.walls[i], start, goal)
 
 
@@ -260,8 +260,13 @@ def plan_path(config: EnvConfig, walls: np.ndarray, start: np.ndarray, goal: np.
     walls = np.asarray(walls, dtype=bool)
     cell, g = config.cell_size, walls.shape[0]
     usable = disc_fits(walls, cell, config.robot_radius) if config.collision_reach else ~walls
-    rc = lambda xy: np.clip(np.floor(np.asarray(xy, np.float64)[::-1] / cell).astype(np.int64), 0, g - 1)  # noqa: E731
-    return plan_polyline_np(cell_field_np(usable, rc(goal)), rc(start), start, goal, cell)
+    field = cell_field_np(usable, _cell_of(goal, cell, g))
+    return plan_polyline_np(field, _cell_of(start, cell, g), start, goal, cell)
+
+
+def _cell_of(xy, cell: float, g: int) -> np.ndarray:
+    """(row, col) of the cell holding the point ``xy`` on a grid of ``g`` cells of ``cell`` m."""
+    return np.clip(np.floor(np.asarray(xy, np.float64)[::-1] / cell).astype(np.int64), 0, g - 1)
 
 
 def replay_data(ep: Episodes, config: EnvConfig, agent_name: str, runtime: Runtime | None = None

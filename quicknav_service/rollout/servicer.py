@@ -179,11 +179,10 @@ class RolloutServicer(pb_grpc.RolloutServiceServicer):
                 f" (QUICKNAV_ROLLOUT_MAX_SESSIONS) is {s.rollout_max_sessions}: close one or retry"
                 " later",
             )
-        from quicknav_core.admission import stream_estimate
+        from quicknav_core.admission import stream_estimate, stream_field
 
         estimate, _ = stream_estimate(req.rollout)  # (policy mode: an evaluation's, per episode)
-        self.memory.take(session.id, estimate, lambda path: start_loc(
-            "num_envs" if path in ("episodes", "trajectories") else path.removeprefix("env.")))
+        self.memory.take(session.id, estimate, lambda path: start_loc(stream_field(path)))
         self.active_sessions += 1
         session.counted = True
         if policy_run:
