@@ -244,25 +244,25 @@ def _rollout(req: RolloutRequest, limits: Limits, runtime, loc: Loc) -> Items:
 
 def stream_estimate(req: RolloutRequest | PolicyRequest):
     """A gRPC stream's estimated peak memory (``train.memory.Estimate``) and the request field
-    its largest part follows: what admission holds one stream to, and what a server's open streams
-    add up to (``quicknav_service.rollout.common.StreamMemory``)."""
+    that its largest part after the process's runtime follows (the runtime is no field's doing):
+    what admission holds one stream to, and what a server's open streams add up to
+    (``quicknav_service.rollout.common.StreamMemory``)."""
     from quicknav_core.train.memory import eval_memory, policy_memory, rollout_memory
 
     if isinstance(req, PolicyRequest):
         est = policy_memory(req.config)
-        return est, est.field
-    if req.policy:
+    elif req.policy:
         est = eval_memory(EvalConfig(env=req.env, episodes=req.num_envs, split=req.split,
                                      gif_episodes=req.num_envs))  # fmt: skip
     else:
         est = rollout_memory(req.env, req.num_envs, req.split)
-    return est, stream_field(est.field)
-
-
-def stream_field(path: str) -> str:
-    """A Rollout stream's estimate field as its request names it: a policy-mode stream's estimate
-    is an evaluation's, whose episodes are the stream's envs and whose env is the Start's config."""
-    return "num_envs" if path in ("episodes", "trajectories") else path.removeprefix("env.")
+    own = {name: size for name, size in est.parts.items() if name != "runtime"}
+    field = est.fields.get(max(own, key=own.get), "") if own else ""
+    if isinstance(req, PolicyRequest):
+        return est, field or "network"
+    # a policy-mode stream's estimate is an evaluation's: its episodes are the stream's envs,
+    # its env the Start's config
+    return est, "num_envs" if field in ("", "episodes", "trajectories") else field.removeprefix("env.")
 
 
 def _policy(req: PolicyRequest, limits: Limits, loc: Loc) -> Items:

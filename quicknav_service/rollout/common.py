@@ -42,8 +42,6 @@ class StreamMemory:
     ``budget_mb`` is refused RESOURCE_EXHAUSTED; its parts are given back when it ends. Streams on
     the same rooms share their banks in the runtime's cache, so the banks' sum is an upper bound."""
 
-    RUNTIME = "runtime"
-
     def __init__(self, budget_mb: int, setting: str):
         self.budget_mb = budget_mb
         self.setting = setting  # the environment variable that sets the budget, for the message
@@ -67,15 +65,11 @@ class StreamMemory:
         with self._lock:
             return len(self._held)
 
-    def take(self, key: str, estimate, loc) -> None:
-        """Hold ``estimate``'s parts for the stream ``key``, or raise Refused naming the request
-        field its largest own part follows (``loc(config path)``: where it sits in the request),
-        what the open streams hold and the budget."""
+    def take(self, key: str, estimate, where: str) -> None:
+        """Hold ``estimate``'s parts for the stream ``key``, or raise Refused naming ``where`` (the
+        request field its largest part follows), what the open streams hold and the budget."""
         from quicknav_core.train.memory import megabytes
 
-        own = {k: v for k, v in estimate.parts.items() if k != self.RUNTIME}
-        largest = max(own, key=own.get) if own else ""
-        where = ".".join(map(str, loc(estimate.fields.get(largest) or "num_envs")))
         with self._lock:
             before, after = self._total(), self._total([estimate])
             if megabytes(after) > self.budget_mb:

@@ -179,10 +179,10 @@ class RolloutServicer(pb_grpc.RolloutServiceServicer):
                 f" (QUICKNAV_ROLLOUT_MAX_SESSIONS) is {s.rollout_max_sessions}: close one or retry"
                 " later",
             )
-        from quicknav_core.admission import stream_estimate, stream_field
+        from quicknav_core.admission import stream_estimate
 
-        estimate, _ = stream_estimate(req.rollout)  # (policy mode: an evaluation's, per episode)
-        self.memory.take(session.id, estimate, lambda path: start_loc(stream_field(path)))
+        estimate, field = stream_estimate(req.rollout)  # (policy mode: an evaluation's)
+        self.memory.take(session.id, estimate, ".".join(start_loc(field)))
         self.active_sessions += 1
         session.counted = True
         if policy_run:

@@ -87,3 +87,14 @@ def test_policy_admission__the_door_counts_one_streams_most_rows():
     [refused] = admit(PolicyRequest(cfg), Limits(max_job_memory_mb=full - 1))
     assert refused.get("capacity") and f"needs about {full:,} MB" in refused["msg"], refused
     assert admit(PolicyRequest(cfg), Limits(max_job_memory_mb=full)) == []
+
+
+def test_stream_estimate__names_the_field_as_the_start_does():
+    """A policy-mode stream's estimate is an evaluation's; the field it names is the Start's:
+    its episodes are the stream's envs, its env the Start's config (not ``env.grid_size``)."""
+    from quicknav_core.admission import RolloutRequest, stream_estimate
+
+    big_grid = EnvConfig(grid_size=128, room_size=64.0, train_rooms=16, test_rooms=8)
+    assert stream_estimate(RolloutRequest(big_grid, 4, policy=True))[1] == "grid_size"
+    many = EnvConfig(grid_size=8, train_rooms=16, test_rooms=8, max_steps=2000)
+    assert stream_estimate(RolloutRequest(many, 1024, policy=True))[1] == "num_envs"
