@@ -1,5 +1,6 @@
-"""QuickNav defers seaborn (imported by gymnax's Pong, never used by QuickNav): building an env
-does not import it, and a user's own seaborn still works in the same process. The evaluation
+"""QuickNav defers seaborn and matplotlib.pyplot (imported by gymnax's Pong and Catch; QuickNav
+never uses seaborn, and pyplot only where it draws): building an env imports neither, and a user's
+own seaborn or pyplot still works in the same process, however it is imported. The evaluation
 imports scipy.stats only where it computes a statistic (``eval.aggregate``)."""
 
 from __future__ import annotations
@@ -28,9 +29,33 @@ def test_deferred__building_an_env_or_importing_the_eval_imports_neither_seaborn
         env, params = EnvConfig(grid_size=8).build("train")
         from quicknav_core.eval.evaluate import run_eval  # statistics import scipy.stats when used
         print(type(sys.modules["seaborn"]).__name__, "scipy.stats" in sys.modules,
-              "pandas" in sys.modules)
+              "pandas" in sys.modules, type(sys.modules["matplotlib.pyplot"]).__name__,
+              "matplotlib.backend_bases" in sys.modules)
     """)
-    assert out.split() == ["DeferredModule", "False", "False"]
+    assert out.split() == ["DeferredModule", "False", "False", "DeferredModule", "False"]
+
+
+@pytest.mark.parametrize("how", [
+    "import matplotlib.pyplot\nplt = matplotlib.pyplot",  # the package's attribute
+    "from matplotlib import pyplot as plt",
+    "import matplotlib.pyplot as plt",
+    "import matplotlib\nmatplotlib.use('Agg')\nimport matplotlib.pyplot as plt",  # use() switches pyplot
+])
+def test_deferred__pyplot_works_however_it_is_imported_after_the_env(how):
+    out = _run(f"""
+        import sys
+        from quicknav_core.config import EnvConfig
+        env, params = EnvConfig(grid_size=8).build("train")
+        {how.replace(chr(10), chr(10) + " " * 8)}
+        fig, ax = plt.subplots()
+        ax.plot([0, 1], [1, 0])
+        real = sys.modules["matplotlib.pyplot"]
+        import matplotlib
+        from gymnax.environments.bsuite import catch
+        print(type(real).__name__, matplotlib.pyplot is real, catch.plt.gcf() is fig,
+              matplotlib.get_backend().lower())
+    """)
+    assert out.split() == ["module", "True", "True", "agg"]
 
 
 def test_deferred__seaborn_works_on_first_use_and_replaces_the_stand_in():
