@@ -35,12 +35,15 @@ def test_deferred__building_an_env_or_importing_the_eval_imports_neither_seaborn
     assert out.split() == ["DeferredModule", "False", "False", "DeferredModule", "False"]
 
 
-@pytest.mark.parametrize("how", [
-    "import matplotlib.pyplot\nplt = matplotlib.pyplot",  # the package's attribute
-    "from matplotlib import pyplot as plt",
-    "import matplotlib.pyplot as plt",
-    "import matplotlib\nmatplotlib.use('Agg')\nimport matplotlib.pyplot as plt",  # use() switches pyplot
-])
+@pytest.mark.parametrize(
+    "how",
+    [
+        "import matplotlib.pyplot\nplt = matplotlib.pyplot",  # the package's attribute
+        "from matplotlib import pyplot as plt",
+        "import matplotlib.pyplot as plt",
+        "import matplotlib\nmatplotlib.use('Agg')\nimport matplotlib.pyplot as plt",  # use() switches pyplot
+    ],
+)
 def test_deferred__pyplot_works_however_it_is_imported_after_the_env(how):
     out = _run(f"""
         import sys
