@@ -56,7 +56,10 @@ class Settings(BaseSettings):
         None, ge=0, le=65535,
         description="`quicknav worker` also serves gRPC Rollout on this port (unset: it does not)",
     )
-    rollout_max_sessions: int = Field(16, ge=1, le=10_000, description="concurrent rollout streams")
+    rollout_max_sessions: int = Field(
+        16, ge=1, le=10_000,
+        description="concurrent Rollout streams per gRPC server (Policy streams are counted apart, to the same limit)",
+    )  # fmt: skip
     rollout_memory_mb: int | None = Field(
         None, ge=64, le=16_777_216,
         description="memory a gRPC server's open Rollout streams may hold together, by their"
