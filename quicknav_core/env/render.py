@@ -76,8 +76,33 @@ def boxes_and_people(discs: np.ndarray, config: EnvConfig) -> dict[str, np.ndarr
     return {"boxes": discs[:k][discs[:k, 2] > 0], "people": discs[k:][discs[k:, 2] > 0]}
 
 
-def draw_room(ax: Axes, walls: np.ndarray, room_size: float) -> None:
-    """Walls dark, free cells light; x right, y up, 1 unit = 1 metre."""
+def map_view(walls: np.ndarray, room_size: float) -> tuple[float, float, float, float]:
+    """(x0, x1, y0, y1) in metres: the part of a map's room that pictures show, the free cells'
+    bounding box and the ring of wall cells around it. A map lies in the smallest square grid
+    that holds it (the rest of the square is wall), and a SLAM map's unknown margins are wall too:
+    a picture of the whole square would be mostly wall. Generated rooms are shown whole."""
+    walls = np.asarray(walls, dtype=bool)
+    free = ~walls
+    if not free.any():
+        return (0.0, room_size, 0.0, room_size)
+    cell = room_size / walls.shape[1]
+    rows, cols = np.flatnonzero(free.any(axis=1)), np.flatnonzero(free.any(axis=0))
+    r0, r1 = max(int(rows[0]) - 1, 0), min(int(rows[-1]) + 2, walls.shape[0])
+    c0, c1 = max(int(cols[0]) - 1, 0), min(int(cols[-1]) + 2, walls.shape[1])
+    return (c0 * cell, c1 * cell, r0 * cell, r1 * cell)
+
+
+def room_view(walls: np.ndarray, config: EnvConfig) -> tuple[float, float, float, float]:
+    """What a picture of a room of ``config``'s shows: a map's ``map_view``, a generated room whole."""
+    if config.rooms == "maps":
+        return map_view(walls, config.room_size)
+    return (0.0, config.room_size, 0.0, config.room_size)
+
+
+def draw_room(ax: Axes, walls: np.ndarray, room_size: float,
+              view: tuple[float, float, float, float] | None = None) -> None:  # fmt: skip
+    """Walls dark, free cells light; x right, y up, 1 unit = 1 metre; ``view``: the (x0, x1, y0,
+    y1) shown (``room_view``), the whole room when None."""
     from matplotlib.colors import ListedColormap
 
     ax.imshow(
@@ -89,8 +114,9 @@ def draw_room(ax: Axes, walls: np.ndarray, room_size: float) -> None:
         vmax=1,
         interpolation="nearest",
     )
-    ax.set_xlim(0, room_size)
-    ax.set_ylim(0, room_size)
+    x0, x1, y0, y1 = view if view is not None else (0.0, room_size, 0.0, room_size)
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y0, y1)
     ax.set_aspect("equal")
     ax.set_xticks([])
     ax.set_yticks([])
@@ -148,6 +174,9 @@ class FrameDrawer:
         walls = np.asarray(snap["walls"])
         if self._walls is None or walls.shape != self._walls.shape or not np.array_equal(walls, self._walls):
             self.room.set_data(walls.astype(float))
+            x0, x1, y0, y1 = room_view(walls, self.config)  # a map: its own extent, centred
+            self.ax.set_xlim(x0, x1)
+            self.ax.set_ylim(y0, y1)
             self._walls = walls.copy()
             self._background_key = None  # a new room: a new background
         goal = np.asarray(snap["goal"], dtype=float)

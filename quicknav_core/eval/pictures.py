@@ -161,7 +161,7 @@ def draw_trajectories(ep: Episodes, config: EnvConfig, path: Path, title: str = 
         if i >= count:
             ax.axis("off")
             continue
-        render.draw_room(ax, ep.walls[i], config.room_size)
+        render.draw_room(ax, ep.walls[i], config.room_size, render.room_view(ep.walls[i], config))
         if (plan := episode_plan(ep, config, i)) is not None:  # the global plan, dashed
             ax.plot(plan[:, 0], plan[:, 1], color=render.PLAN_COLOUR, lw=1.2, ls=(0, (3, 2)))
         if ep.obstacles is not None:  # boxes where they stood; people where they started, and

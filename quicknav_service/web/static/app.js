@@ -770,16 +770,45 @@ async function mapsPage() {
 // ------------------------------------------------------------------ replay
 const PLAN_COLOUR = "#17becf", BOX_COLOUR = "#8c564b", PERSON_COLOUR = "#9467bd"; // as the GIFs
 
+// what the canvas shows of an episode's room, a square {x0, y0, side} in metres: a map's own extent
+// (its free cells and the ring of wall around them, centred), as the GIFs show it
+// (render.room_view): a map lies in the smallest square grid that holds it, the rest wall
+function roomView(data, ep) {
+  if (ep.view) return ep.view;
+  const cell = data.room_size / data.grid_size;
+  let view = { x0: 0, y0: 0, side: data.room_size };
+  if (ep.map) {
+    let r0 = Infinity, r1 = -1, c0 = Infinity, c1 = -1;
+    ep.walls.forEach((row, r) => {
+      for (let c = 0; c < row.length; c++) {
+        if (row[c] !== "#") { r0 = Math.min(r0, r); r1 = Math.max(r1, r); c0 = Math.min(c0, c); c1 = Math.max(c1, c); }
+      }
+    });
+    if (r1 >= 0) {
+      r0 = Math.max(r0 - 1, 0); c0 = Math.max(c0 - 1, 0);
+      r1 = Math.min(r1 + 2, ep.walls.length); c1 = Math.min(c1 + 2, ep.walls[0].length);
+      const w = (c1 - c0) * cell, hm = (r1 - r0) * cell, side = Math.max(w, hm);
+      view = { x0: c0 * cell - (side - w) / 2, y0: r0 * cell - (side - hm) / 2, side };
+    }
+  }
+  ep.view = view;
+  return view;
+}
+
 function drawFrame(canvas, data, ep, t) {
   const ctx = canvas.getContext("2d");
   const size = canvas.width;
-  const g = data.grid_size;
-  const scale = size / data.room_size; // pixels per metre
-  const px = (x) => x * scale;
-  const py = (y) => size - y * scale; // y up, as in the GIFs
-  const cell = size / g;
-  ctx.fillStyle = "#f4f1ea";
+  const view = roomView(data, ep);
+  canvas.dataset.view = `${view.x0},${view.y0},${view.side}`;
+  const scale = size / view.side; // pixels per metre
+  const px = (x) => (x - view.x0) * scale;
+  const py = (y) => size - (y - view.y0) * scale; // y up, as in the GIFs
+  const len = (m) => m * scale; // a length, not a place
+  const cellM = data.room_size / data.grid_size, cell = len(cellM);
+  ctx.fillStyle = "#3b3b3b"; // beyond the room (a map's view centred in the square): wall
   ctx.fillRect(0, 0, size, size);
+  ctx.fillStyle = "#f4f1ea";
+  ctx.fillRect(px(0), py(data.room_size), len(data.room_size), len(data.room_size));
   // an uploaded map: its own picture where it lies in the room, the grid's walls over it, lighter
   const place = ep.map && data.maps && data.maps[ep.map];
   const picture = place && data.pictures && data.pictures[ep.map];
@@ -787,18 +816,18 @@ function drawFrame(canvas, data, ep, t) {
   if (picture) {
     ctx.fillRect(0, 0, size, size); // beyond the map: the grid's wall
     ctx.imageSmoothingEnabled = false;
-    ctx.drawImage(picture, px(place.x0), py(place.y0 + place.height_m), px(place.width_m), px(place.height_m));
+    ctx.drawImage(picture, px(place.x0), py(place.y0 + place.height_m), len(place.width_m), len(place.height_m));
     ctx.fillStyle = "rgba(59,59,59,0.35)";
   }
   // one path filled once: translucent cells do not darken where they overlap
   ctx.beginPath();
   ep.walls.forEach((row, r) => {
-    for (let c = 0; c < row.length; c++) if (row[c] === "#") ctx.rect(c * cell, size - (r + 1) * cell, cell + 0.5, cell + 0.5);
+    for (let c = 0; c < row.length; c++) if (row[c] === "#") ctx.rect(px(c * cellM), py((r + 1) * cellM), cell + 0.5, cell + 0.5);
   });
   ctx.fill("nonzero");
   // goal disc
   ctx.fillStyle = "rgba(44,160,44,0.35)";
-  ctx.beginPath(); ctx.arc(px(ep.goal[0]), py(ep.goal[1]), px(data.goal_radius), 0, 2 * Math.PI); ctx.fill();
+  ctx.beginPath(); ctx.arc(px(ep.goal[0]), py(ep.goal[1]), len(data.goal_radius), 0, 2 * Math.PI); ctx.fill();
   // the global plan from the start (an env that observes it), dashed
   if (ep.plan && ep.plan.length > 1) {
     ctx.strokeStyle = PLAN_COLOUR; ctx.lineWidth = 1.5; ctx.setLineDash([5, 4]); ctx.beginPath();
@@ -806,7 +835,7 @@ function drawFrame(canvas, data, ep, t) {
     ctx.stroke(); ctx.setLineDash([]);
   }
   // obstacles the map does not show: boxes where they stand, people where they are at step t
-  const disc = (x, y, r, colour) => { ctx.fillStyle = colour; ctx.beginPath(); ctx.arc(px(x), py(y), Math.max(px(r), 2), 0, 2 * Math.PI); ctx.fill(); };
+  const disc = (x, y, r, colour) => { ctx.fillStyle = colour; ctx.beginPath(); ctx.arc(px(x), py(y), Math.max(len(r), 2), 0, 2 * Math.PI); ctx.fill(); };
   (ep.boxes || []).forEach(([x, y, r]) => disc(x, y, r, BOX_COLOUR));
   (ep.people || []).forEach((p) => disc(p.x[t], p.y[t], p.radius, PERSON_COLOUR));
   // path so far
@@ -823,7 +852,7 @@ function drawFrame(canvas, data, ep, t) {
     ctx.lineTo(px(x + r * Math.cos(th + a)), py(y + r * Math.sin(th + a))); ctx.stroke();
   });
   // robot and heading
-  const rr = px(data.robot_radius);
+  const rr = len(data.robot_radius);
   ctx.fillStyle = "#1f77b4"; ctx.beginPath(); ctx.arc(px(x), py(y), rr, 0, 2 * Math.PI); ctx.fill();
   ctx.strokeStyle = "#fff"; ctx.lineWidth = Math.max(1.5, rr / 3); ctx.beginPath(); ctx.moveTo(px(x), py(y));
   ctx.lineTo(px(x + 1.5 * data.robot_radius * Math.cos(th)), py(y + 1.5 * data.robot_radius * Math.sin(th))); ctx.stroke();
