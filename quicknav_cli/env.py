@@ -31,15 +31,21 @@ ConfigOpt = Annotated[
 DEMO_POLICIES = ("oracle", "scripted", "random")
 
 
-def env_config(config: Path | None, overrides: list[str] | None) -> EnvConfig:
-    """EnvConfig from an optional JSON file plus --set overrides; exits with a clear message if bad."""
+def env_config(config: Path | None, overrides: list[str] | None, on_map: Path | None = None) -> EnvConfig:
+    """EnvConfig from an optional JSON file plus --set overrides, laid on ``on_map`` as
+    ``quicknav eval --map`` lays it; exits with a clear message if bad."""
     from quicknav_cli.common import resolved
     from quicknav_core.config import resolve_eval
 
     data = read_json(config) if config else {}
     # the env of a baseline evaluation is resolved exactly like this: one path for every door
     request = {"policy": "random", "env": {**data, **sets(overrides)}}
-    return resolved(resolve_eval, request).env
+    if on_map is None:
+        return resolved(resolve_eval, request).env
+    from quicknav_cli.eval import map_layer
+
+    request["map"] = str(on_map)
+    return resolved(resolve_eval, request, flags={"map": "--map"}, map_env=map_layer()).env
 
 
 @dataclass
@@ -116,9 +122,15 @@ def demo(
     seed: Annotated[int, typer.Option(min=0, help="Seed of the episode.")] = 0,
     config: ConfigOpt = None,
     set_: EnvSetOpt = None,
+    on_map: Annotated[
+        Path | None,
+        typer.Option("--map", help="On this map (a map_server .yaml), laid as quicknav eval --map"
+                     " lays it: the grid follows the map at the env's cell size (room_size /"
+                     " grid_size), the step limit its longest path."),
+    ] = None,
 ) -> None:
     """Run one episode and write a PNG of its trajectory and a GIF with lidar rays."""
-    cfg = env_config(config, set_)
+    cfg = env_config(config, set_, on_map)
     if policy not in DEMO_POLICIES:
         fail(f"--policy {policy!r}: allowed values are {', '.join(DEMO_POLICIES)}")
     enable_compilation_cache()

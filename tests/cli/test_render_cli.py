@@ -9,6 +9,7 @@ from quicknav_cli.main import app
 from quicknav_core.config import EnvConfig
 from quicknav_core.env.numpy_env import QuickNavNumpyEnv
 from quicknav_core.env.render import episode_frames, render_frame, save_gif
+from tests.journeys.readme import ROOT
 
 runner = CliRunner()
 
@@ -49,6 +50,19 @@ def test_cli_env_demo__writes_png_and_gif(tmp_path):
     assert Image.open(tmp_path / "demo.png").size[0] >= 300
     with Image.open(tmp_path / "demo.gif") as im:
         assert im.n_frames > 3
+
+
+def test_cli_env_demo__on_a_map_lays_it_as_eval_does_and_names_the_option_when_it_cannot(tmp_path):
+    office = ROOT / "examples/maps/office.yaml"  # 21.2 m x 13.2 m: 43 x 27 cells of 0.5 m
+    result = runner.invoke(app, ["env", "demo", "--out", str(tmp_path), "--map", str(office)])
+    assert result.exit_code == 0, result.output
+    # the default env's 0.5 m cells (room_size 8 / grid_size 16): the grid that holds the map
+    assert f"on {office}: grid 45 of 0.5 m cells, step limit" in " ".join(result.output.split())
+    assert "reached the goal" in result.output
+    with Image.open(tmp_path / "demo.gif") as im:
+        assert im.n_frames > 3
+    missing = runner.invoke(app, ["env", "demo", "--out", str(tmp_path), "--map", str(tmp_path / "no.yaml")])
+    assert missing.exit_code == 2 and "--map: " in missing.output and "no such file" in missing.output
 
 
 def test_cli_env_rooms__writes_figure(tmp_path):
