@@ -145,6 +145,7 @@ class FrameDrawer:
         self.config = config
         self.fig = plt.figure(figsize=(size_px / 100, size_px / 100), dpi=100)
         self.ax = ax = self.fig.add_axes(self._FULL)
+        ax.set_anchor("N")  # a map wider than tall (room_view) sits under its title
         size, r = config.room_size, config.robot_radius
         draw_room(ax, np.zeros((2, 2), dtype=bool), size)  # the walls are set by each frame
         self.room = ax.images[-1]
