@@ -65,13 +65,18 @@ def occupation(grid_size: int, return_prob: float) -> np.ndarray:
         (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n * n, n * n)
     )
     centre = idx[grid_size // 2 - 1, grid_size // 2 - 1]
-    if return_prob <= 0.0:
-        return np.full(n * n, 1.0 / (n * n))  # a walk without resets spreads evenly
+    even = np.full(n * n, 1.0 / (n * n))  # a walk without resets spreads evenly
+    if return_prob <= 0.0 or 1.0 - return_prob == 1.0:
+        return even  # (a chance below float64's resolution of 1 is no reset at all: I - move is singular)
     a = sp.identity(n * n, format="csc") - (1.0 - return_prob) * move
     b = np.zeros(n * n)
     b[centre] = return_prob
-    pi = np.clip(spla.spsolve(a, b), 0.0, None)
-    return pi / pi.sum()
+    with np.errstate(all="ignore"):
+        pi = np.clip(spla.spsolve(a, b), 0.0, None)
+    total = pi.sum()
+    if not (np.isfinite(total) and total > 0.0):  # a system too near singular to solve: the limit
+        return even
+    return pi / total
 
 
 def expected_steps(grid_size: int, return_prob: float, target: int, pi: np.ndarray | None = None) -> float:

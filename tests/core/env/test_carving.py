@@ -56,3 +56,19 @@ def test_refusal__solves_the_walk_once_per_grid_and_return_prob_tried(monkeypatc
     EnvConfig(grid_size=g_max, room_size=g_max / 2, carver="centre")
     with pytest.raises(ValueError, match="grid_size <= "):
         EnvConfig(grid_size=g_max + 1, room_size=(g_max + 1) / 2, carver="centre")
+
+
+@pytest.mark.parametrize("return_prob", [1e-17, 1e-300, 5e-324])
+def test_occupation__a_chance_too_small_to_resolve_is_the_even_spread_of_no_resets(return_prob):
+    # 1 - 1e-17 is 1.0 in float64: the walk's system is singular (it gave NaN, found by the API's
+    # fuzz test); the answer is the limit, a walk without resets, spread evenly
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for grid in (4, 16, 64):
+            pi = carving.occupation(grid, return_prob)
+            assert np.all(np.isfinite(pi)) and pi.sum() == pytest.approx(1.0)
+            np.testing.assert_allclose(pi, carving.occupation(grid, 0.0), rtol=1e-6)
+            assert math.isfinite(carving.expected_steps(grid, return_prob, (grid - 2) ** 2 // 2))
+
