@@ -175,7 +175,7 @@ class FrameDrawer:
         walls = np.asarray(snap["walls"])
         if self._walls is None or walls.shape != self._walls.shape or not np.array_equal(walls, self._walls):
             self.room.set_data(walls.astype(float))
-            x0, x1, y0, y1 = room_view(walls, self.config)  # a map: its own extent, centred
+            x0, x1, y0, y1 = room_view(walls, self.config)  # a map: its own extent, under the title
             self.ax.set_xlim(x0, x1)
             self.ax.set_ylim(y0, y1)
             self._walls = walls.copy()
