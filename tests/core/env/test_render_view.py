@@ -65,3 +65,32 @@ def test_frames__show_the_rooms_view_and_draw_the_robot_inside_it(rooms):
     floor = np.array([int(v * 255) for v in to_rgb(render.FREE_COLOUR)])
     columns = (np.abs(frame.astype(int) - floor).max(axis=2) <= 2).any(axis=0).mean()
     assert columns > 0.8 if rooms == "maps" else columns < 0.7, columns
+
+
+def test_saved_pictures__cut_the_rows_a_wide_map_leaves_blank_and_keep_a_square_room_whole(tmp_path):
+    from PIL import Image
+
+    walls = map_room(OFFICE, 0.5, 64)  # wider than tall: its view sits at the top of the frame
+    free = np.argwhere(~walls)
+    r, c = free[len(free) // 2]
+    pos = np.array([(c + 0.5) * 0.5, (r + 0.5) * 0.5])
+    shown = {}
+    for rooms in ("maps", "carved"):
+        on = {"rooms": "maps", "maps": {"train": [str(OFFICE)]}} if rooms == "maps" else {}
+        cfg = EnvConfig(grid_size=64, room_size=32.0, **on)
+        snaps = [{"walls": walls, "pos": pos + np.array([0.1 * t, 0.0]), "theta": np.float32(0.0), "goal": pos + 1.0}
+                 for t in range(3)]  # fmt: skip
+        frames = render.episode_frames(snaps, cfg, title=rooms, size_px=320)
+        with Image.open(render.save_gif(frames, tmp_path / f"{rooms}.gif")) as im:
+            assert im.n_frames == 3
+            shown[rooms] = im.size
+            im.seek(2)
+            # what is kept is the frame's top, pixel for pixel (up to the GIF's palette)
+            kept = np.asarray(im.convert("RGB")).astype(int)
+            assert np.abs(kept - frames[2][: kept.shape[0]].astype(int)).mean() < 2.0
+        png = np.asarray(Image.open(render.save_png(frames[-1], tmp_path / f"{rooms}.png")).convert("RGB"))
+        assert png.shape[:2] == shown[rooms][::-1]
+    assert shown["carved"] == (320, 320)  # a whole room, drawn down to its margin: as it was
+    # the office is 21.2 m x 13.2 m: the frame keeps its title and the map, and about 2 % below
+    width, height = shown["maps"]
+    assert width == 320 and 0.6 * 320 < height < 0.8 * 320, shown
