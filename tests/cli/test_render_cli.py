@@ -53,11 +53,12 @@ def test_cli_env_demo__writes_png_and_gif(tmp_path):
 
 
 def test_cli_env_demo__on_a_map_lays_it_as_eval_does_and_names_the_option_when_it_cannot(tmp_path):
-    office = ROOT / "examples/maps/office.yaml"  # 21.2 m x 13.2 m: 43 x 27 cells of 0.5 m
-    result = runner.invoke(app, ["env", "demo", "--out", str(tmp_path), "--map", str(office)])
+    office = ROOT / "examples/maps/office.yaml"  # 21.2 m x 13.2 m: 22 x 14 cells of 1 m
+    result = runner.invoke(app, ["env", "demo", "--out", str(tmp_path), "--map", str(office),
+                                 "--set", "room_size=16", "--set", "grid_size=16"])  # fmt: skip
     assert result.exit_code == 0, result.output
-    # the default env's 0.5 m cells (room_size 8 / grid_size 16): the grid that holds the map
-    assert f"on {office}: grid 45 of 0.5 m cells, step limit" in " ".join(result.output.split())
+    # the env's 1 m cells (room_size 16 / grid_size 16): the grid that holds the map, and its wall
+    assert f"on {office}: grid 24 of 1 m cells, step limit" in " ".join(result.output.split())
     assert "reached the goal" in result.output
     with Image.open(tmp_path / "demo.gif") as im:
         assert im.n_frames > 3
