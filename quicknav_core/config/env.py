@@ -500,7 +500,9 @@ class EnvConfig(StrictModel):
         # a robot as wide as a cell or wider is allowed: it starts and drives only where its disc
         # fits (env.clearance); a bank where it fits nowhere is refused when the bank is built
         step = self.max_wheel_speed * self.dt
-        if step > c:
+        # a relative slack of 1e-9: a map's room is grid x cell, and 162 x 0.1 / 162 reads
+        # 0.09999999999999999 in floating point, below a step of exactly 0.1 m
+        if step > c * (1.0 + 1e-9):
             raise ValueError(
                 f"max_wheel_speed*dt = {step:g} m per step exceeds the cell size {c:g} m, so the"
                 " robot could pass through walls; allowed range max_wheel_speed*dt <= room_size/grid_size"

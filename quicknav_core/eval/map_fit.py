@@ -74,10 +74,11 @@ def fit_map(env: EnvConfig, path: str | Path, read: dict[str, Any] | None = None
     width_m, height_m = m.size_m
     side = max(math.ceil(width_m / cell - 1e-9), math.ceil(height_m / cell - 1e-9)) + 2
     if side > MAX_GRID:
-        raise MapError(f"{m.path}: the map is {width_m:g} m x {height_m:g} m: at the policy's"
-                       f" {cell:g} m cells that is a grid of {side}, above the {MAX_GRID} an env may"
-                       " have; crop the map to the part the robot drives, or train a policy with"
-                       f" cells of at least {max(width_m, height_m) / (MAX_GRID - 2):.2f} m")  # fmt: skip
+        raise MapError(f"{m.path}: the map is {width_m:g} m x {height_m:g} m: at the env's"
+                       f" {cell:g} m cells (cell_size; a policy's are those it trained with) that is"
+                       f" a grid of {side}, above the {MAX_GRID} an env may have; crop the map to"
+                       " the part the robot drives, or use cells of at least"
+                       f" {max(width_m, height_m) / (MAX_GRID - 2):.2f} m")  # fmt: skip
     walls, _ = reachable_only(to_cells(m, cell, side), m.path)
     free_area = float((~m.blocked).sum()) * m.resolution**2
     kept = float((~walls).sum()) * cell * cell / free_area if free_area > 0 else 0.0

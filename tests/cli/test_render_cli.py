@@ -64,6 +64,16 @@ def test_cli_env_demo__on_a_map_lays_it_as_eval_does_and_names_the_option_when_i
         assert im.n_frames > 3
     missing = runner.invoke(app, ["env", "demo", "--out", str(tmp_path), "--map", str(tmp_path / "no.yaml")])
     assert missing.exit_code == 2 and "--map: " in missing.output and "no such file" in missing.output
+    # a 30 m x 2 m corridor at 0.1 m cells would need a grid of 302: refused before anything
+    # compiles, naming the env's cells (no policy here) and the cell size that fits
+    (tmp_path / "long.pgm").write_bytes(b"P5 300 20 255\n" + bytes([254]) * (300 * 20))
+    (tmp_path / "long.yaml").write_text("image: long.pgm\nresolution: 0.1\norigin: [0, 0, 0]\n"
+                                        "negate: 0\noccupied_thresh: 0.65\nfree_thresh: 0.196\n")
+    big = runner.invoke(app, ["env", "demo", "--out", str(tmp_path), "--map", str(tmp_path / "long.yaml"),
+                              "--set", "room_size=6.4", "--set", "grid_size=64"])  # fmt: skip
+    said = " ".join(big.output.split())
+    assert big.exit_code == 2 and "--map: " in said and "at the env's 0.1 m cells" in said, said
+    assert "a grid of 302, above the 256" in said and "cells of at least 0.12 m" in said, said
 
 
 def test_cli_env_rooms__writes_figure(tmp_path):

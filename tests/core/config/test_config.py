@@ -60,6 +60,13 @@ def test_config__bad_values_name_field_and_range(kwargs, field, allowed):
     assert allowed in text
 
 
+def test_config__a_step_of_exactly_one_cell_survives_the_rooms_rounding():
+    # a map laid at 0.1 m cells: room 162 x 0.1 = 16.2 m, and 16.2 / 162 reads 0.09999999999999999
+    assert 16.2 / 162 < 0.1 == EnvConfig().max_wheel_speed * EnvConfig().dt
+    assert EnvConfig(room_size=162 * 0.1, grid_size=162).cell_size == 16.2 / 162
+    assert "max_wheel_speed*dt" in _error_text(room_size=16.1, grid_size=162)
+
+
 def test_config__unknown_field_rejected():
     assert "lidar_beam" in _error_text(lidar_beam=8)
 
