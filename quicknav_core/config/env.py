@@ -444,8 +444,12 @@ class EnvConfig(StrictModel):
 
     @property
     def cell_size(self) -> float:
-        """Side of one grid cell in metres."""
-        return self.room_size / self.grid_size
+        """Side of one grid cell in metres, to 12 significant digits: a room laid as grid x cell
+        (a map at a policy's cells) gives back that cell exactly, where the plain quotient can
+        fall short of it (48 x 0.1 / 48 reads 0.09999999999999999), so the checks and choices
+        made from it (a step at most one cell, a robot narrower than a cell, how many cells its
+        disc reaches) are those of the policy's own env."""
+        return float(f"{self.room_size / self.grid_size:.12g}")
 
     @property
     def inner_cells(self) -> int:
@@ -500,9 +504,7 @@ class EnvConfig(StrictModel):
         # a robot as wide as a cell or wider is allowed: it starts and drives only where its disc
         # fits (env.clearance); a bank where it fits nowhere is refused when the bank is built
         step = self.max_wheel_speed * self.dt
-        # a relative slack of 1e-9: a map's room is grid x cell, and 162 x 0.1 / 162 reads
-        # 0.09999999999999999 in floating point, below a step of exactly 0.1 m
-        if step > c * (1.0 + 1e-9):
+        if step > c:
             raise ValueError(
                 f"max_wheel_speed*dt = {step:g} m per step exceeds the cell size {c:g} m, so the"
                 " robot could pass through walls; allowed range max_wheel_speed*dt <= room_size/grid_size"

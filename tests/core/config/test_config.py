@@ -60,11 +60,16 @@ def test_config__bad_values_name_field_and_range(kwargs, field, allowed):
     assert allowed in text
 
 
-def test_config__a_step_of_exactly_one_cell_survives_the_rooms_rounding():
-    # a map laid at 0.1 m cells: room 162 x 0.1 = 16.2 m, and 16.2 / 162 reads 0.09999999999999999
-    assert 16.2 / 162 < 0.1 == EnvConfig().max_wheel_speed * EnvConfig().dt
-    assert EnvConfig(room_size=162 * 0.1, grid_size=162).cell_size == 16.2 / 162
-    assert "max_wheel_speed*dt" in _error_text(room_size=16.1, grid_size=162)
+def test_config__a_room_laid_as_grid_times_cell_gives_back_the_cell():
+    # a map laid at a 0.1 m-cell policy's cells: room 48 x 0.1 m, and 4.8 / 48 reads
+    # 0.09999999999999999, below the default step of exactly 0.1 m (it was refused), and a 0.2 m
+    # robot's disc at 0.2 m cells reached two cells instead of one (a different compiled env)
+    assert 4.8 / 48 < 0.1 == EnvConfig().max_wheel_speed * EnvConfig().dt
+    assert EnvConfig(room_size=48 * 0.1, grid_size=48).cell_size == 0.1
+    wide = {"robot_radius": 0.2, "room_size": 48 * 0.2, "grid_size": 48}
+    assert 9.6 / 48 < 0.2 and EnvConfig(**wide).collision_reach == 1
+    assert EnvConfig(**{**wide, "grid_size": 49}).cell_size == pytest.approx(9.6 / 49, rel=1e-12)
+    assert "max_wheel_speed*dt" in _error_text(room_size=4.7, grid_size=48)
 
 
 def test_config__unknown_field_rejected():
