@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 import httpx
+import numpy as np
 import pytest
 
 from tests.service.conftest import free_port, quicknav_process, wait_until_up
@@ -303,6 +304,39 @@ def test_browser__replay_draws_the_plan_boxes_and_people_where_they_are(server, 
     assert {"global plan", "box (not on the map)", "person walking"} <= set(seen["legend"]), seen["legend"]
 
 
+def test_browser__a_wide_maps_replay_canvas_takes_the_maps_shape(server, page):
+    """A map's replay canvas shows the map's own extent in its own shape (520 px along its longer
+    side), as the GIFs do (``render.map_view``; the slow maps browser test holds the two equal on
+    an uploaded map): a map 4 m wide and 2 m high in an 8-cell grid of 0.5 m cells."""
+    walls = ["########", "#......#", "#......#"] + ["########"] * 5  # row 0 at the bottom
+    episode = {"index": 0, "success": True, "steps": 1, "return": 1.0, "walls": walls, "map": "wide",
+               "goal": [3.0, 0.75], "x": [0.75, 0.8], "y": [0.75, 0.75], "theta": [0.0, 0.0],
+               "ranges": [[], []], "hits": [[], []]}  # fmt: skip
+    data = {"agent": "test", "room_size": 4.0, "grid_size": 8, "robot_radius": 0.15,
+            "goal_radius": 0.3, "dt": 0.1, "beam_angles": [], "hit_codes": {"none": 0, "wall": 1, "goal": 2},
+            "episodes": [episode]}  # fmt: skip
+    from quicknav_core.env.render import map_view
+
+    x0, x1, y0, y1 = map_view(np.array([[c == "#" for c in row] for row in walls]), 4.0)
+    assert (x0, x1, y0, y1) == (0.0, 4.0, 0.0, 2.0)
+    page.goto(server + "/ui/")
+    seen = page.evaluate("""(data) => {
+      const into = document.createElement("div");
+      document.body.append(into);
+      player(data, into);
+      into.querySelector("#play").click();  // pause
+      const canvas = into.querySelector("canvas");
+      const at = (x, y) => Array.from(canvas.getContext("2d").getImageData(
+        Math.floor(x * 130), Math.floor(canvas.height - y * 130), 1, 1).data).slice(0, 3);
+      const out = {size: [canvas.width, canvas.height], view: canvas.dataset.view,
+                   floor: at(2.0, 1.2), wall: at(2.0, 1.8)};
+      into.remove();
+      return out;
+    }""", data)
+    assert seen["size"] == [520, 260] and seen["view"] == "0,0,4,2", seen
+    assert seen["floor"] == [244, 241, 234] and seen["wall"] == [59, 59, 59], seen
+
+
 def success_in_table(page) -> float:
     """The success rate the eval page's metrics table shows, as a fraction."""
     row = page.locator("#eval-metrics tr", has_text="Success rate").locator("td").inner_text()
@@ -514,8 +548,6 @@ def test_browser__maps_form_sends_the_plain_image_fields(server, page, tmp_path)
     """The Maps page's form carries what `quicknav maps upload` does for a plain image: resolution,
     negate and both thresholds. A mid-grey room is unknown at the default thresholds and free with
     free_thresh 0.6, as the server reads it."""
-    import numpy as np
-
     from tests.service.test_maps import pgm
 
     img = np.full((40, 40), 0, np.uint8)  # black: a wall all round

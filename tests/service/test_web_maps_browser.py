@@ -32,18 +32,18 @@ def map_files(tmp_path_factory):
 
 
 def canvas_pixel(page, x_m: float, y_m: float) -> list[int]:  # noqa: F811 (the fixture)
-    """The replay canvas's RGB at a point of the room (metres, y up), through the square of the
-    room the canvas shows (``data-view``: x0, y0, side in metres; a map's own extent)."""
+    """The replay canvas's RGB at a point of the room (metres, y up), through the part of the room
+    the canvas shows (``data-view``: x0, y0, width, height in metres; a map's own extent)."""
     return page.evaluate(
         """([x, y]) => { const c = document.getElementById("replay-canvas");
-        const [x0, y0, side] = c.dataset.view.split(",").map(Number);
-        const s = c.width / side;
+        const [x0, y0, w, h] = c.dataset.view.split(",").map(Number);
+        const s = c.width / w;
         const d = c.getContext("2d").getImageData(Math.round((x - x0) * s), Math.round(c.height - (y - y0) * s), 1, 1).data;
         return [d[0], d[1], d[2]]; }""", [x_m, y_m])  # fmt: skip
 
 
 def canvas_view(page) -> list[float]:  # noqa: F811 (the fixture)
-    """``[x0, y0, side]``: the square of the room the replay canvas shows, in metres."""
+    """``[x0, y0, width, height]``: the part of the room the replay canvas shows, in metres."""
     return [float(v) for v in page.get_attribute("#replay-canvas", "data-view").split(",")]
 
 
@@ -107,15 +107,17 @@ def test_browser__upload_a_map_train_on_it_evaluate_and_replay_on_its_picture(
     canvas = page.locator("#replay-canvas")
     canvas.wait_for(timeout=20_000)
     page.wait_for_timeout(300)
-    # the canvas shows the map's own extent (its free cells and the wall ring around them,
-    # centred), as the GIFs do (render.map_view on the same grid, computed here in Python)
+    # the canvas shows the map's own extent (its free cells and the wall ring around them), as
+    # the GIFs do (render.map_view on the same grid, computed here in Python), in its shape
     from quicknav_core.env.maps import map_room
     from quicknav_core.env.render import map_view
 
     x0, x1, y0, y1 = map_view(map_room(map_files / "room.yaml", 0.5, 18), 9.0)
-    side = max(x1 - x0, y1 - y0)
-    expected = [x0 - (side - (x1 - x0)) / 2, y0 - (side - (y1 - y0)) / 2, side]
-    assert canvas_view(page) == pytest.approx(expected) and side < 9.0, (canvas_view(page), expected)
+    expected = [x0, y0, x1 - x0, y1 - y0]
+    assert canvas_view(page) == pytest.approx(expected) and max(expected[2:]) < 9.0, (canvas_view(page), expected)
+    size = page.evaluate("""() => { const c = document.getElementById("replay-canvas");
+        return [c.width, c.height]; }""")  # fmt: skip
+    assert max(size) == 520 and size[0] / size[1] == pytest.approx((x1 - x0) / (y1 - y0), rel=0.02), size
     # (0.6 m, 4 m): the map's unknown margin (grey 190 in the picture) in a wall cell of the grid,
     # drawn 35 % dark over the picture; without the picture a wall cell is #3b3b3b (59)
     r, g, b = canvas_pixel(page, 0.6, 4.0)

@@ -770,13 +770,15 @@ async function mapsPage() {
 // ------------------------------------------------------------------ replay
 const PLAN_COLOUR = "#17becf", BOX_COLOUR = "#8c564b", PERSON_COLOUR = "#9467bd"; // as the GIFs
 
-// what the canvas shows of an episode's room, a square {x0, y0, side} in metres: a map's own extent
-// (its free cells and the ring of wall around them, centred), as the GIFs show it
-// (render.room_view): a map lies in the smallest square grid that holds it, the rest wall
+// what the canvas shows of an episode's room, {x0, y0, w, h} in metres: a map's own extent (its
+// free cells and the ring of wall around them), as the GIFs show it (render.map_view): a map lies
+// in the smallest square grid that holds it, the rest wall. The canvas takes the view's shape
+const CANVAS_PX = 520; // the longer side
+
 function roomView(data, ep) {
   if (ep.view) return ep.view;
   const cell = data.room_size / data.grid_size;
-  let view = { x0: 0, y0: 0, side: data.room_size };
+  let view = { x0: 0, y0: 0, w: data.room_size, h: data.room_size };
   if (ep.map) {
     let r0 = Infinity, r1 = -1, c0 = Infinity, c1 = -1;
     ep.walls.forEach((row, r) => {
@@ -787,8 +789,7 @@ function roomView(data, ep) {
     if (r1 >= 0) {
       r0 = Math.max(r0 - 1, 0); c0 = Math.max(c0 - 1, 0);
       r1 = Math.min(r1 + 2, ep.walls.length); c1 = Math.min(c1 + 2, ep.walls[0].length);
-      const w = (c1 - c0) * cell, hm = (r1 - r0) * cell, side = Math.max(w, hm);
-      view = { x0: c0 * cell - (side - w) / 2, y0: r0 * cell - (side - hm) / 2, side };
+      view = { x0: c0 * cell, y0: r0 * cell, w: (c1 - c0) * cell, h: (r1 - r0) * cell };
     }
   }
   ep.view = view;
@@ -797,15 +798,17 @@ function roomView(data, ep) {
 
 function drawFrame(canvas, data, ep, t) {
   const ctx = canvas.getContext("2d");
-  const size = canvas.width;
   const view = roomView(data, ep);
-  canvas.dataset.view = `${view.x0},${view.y0},${view.side}`;
-  const scale = size / view.side; // pixels per metre
+  const scale = CANVAS_PX / Math.max(view.w, view.h); // pixels per metre
+  const width = Math.round(view.w * scale), height = Math.round(view.h * scale);
+  if (canvas.width !== width || canvas.height !== height) { canvas.width = width; canvas.height = height; }
+  canvas.dataset.view = `${view.x0},${view.y0},${view.w},${view.h}`;
   const px = (x) => (x - view.x0) * scale;
-  const py = (y) => size - (y - view.y0) * scale; // y up, as in the GIFs
+  const py = (y) => height - (y - view.y0) * scale; // y up, as in the GIFs
   const len = (m) => m * scale; // a length, not a place
   const cellM = data.room_size / data.grid_size, cell = len(cellM);
-  ctx.fillStyle = "#3b3b3b"; // beyond the room (a map's view centred in the square): wall
+  const size = Math.max(width, height);
+  ctx.fillStyle = "#3b3b3b"; // the grid's wall, where the room does not reach
   ctx.fillRect(0, 0, size, size);
   ctx.fillStyle = "#f4f1ea";
   ctx.fillRect(px(0), py(data.room_size), len(data.room_size), len(data.room_size));
@@ -859,7 +862,7 @@ function drawFrame(canvas, data, ep, t) {
 }
 
 function player(data, into) {
-  const canvas = h("canvas", { width: 520, height: 520, id: "replay-canvas" });
+  const canvas = h("canvas", { width: CANVAS_PX, height: CANVAS_PX, id: "replay-canvas" });
   const epSel = h("select", { id: "episode" }, data.episodes.map((ep, i) => h("option", { value: i },
     `episode ${ep.index}: ${ep.success ? "reached the goal" : "failed"} in ${ep.steps} steps`)));
   const slider = h("input", { type: "range", min: 0, max: 0, value: 0, id: "step-slider", "aria-label": "step" });
