@@ -399,6 +399,7 @@ def test_browser__journey_from_the_trained_job_runs_an_eval_reads_its_metrics_an
     page.goto(f"{server}/ui/jobs/{job_id}/replay")
     page.wait_for_selector("#replay-source")
     assert page.get_attribute("#replay-source a", "href") == f"/ui/jobs/{eval_id}"
+    assert "on held-out test rooms (seed" in page.inner_text("#replay-source")
     (data_dir / "artifacts" / eval_id / "replay.json").unlink()
     page.goto(f"{server}/ui/jobs/{job_id}/replay")
     page.wait_for_selector("#replay-source")

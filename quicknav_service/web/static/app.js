@@ -920,13 +920,27 @@ async function mapPictures(data) {
   return out;
 }
 
+// where an eval job's episodes were driven, in words: an uploaded map it was asked to drive, the
+// maps of a policy trained on maps, or a room bank (eval.pictures.rooms_in_words, the same words)
+function evalWhere(evalJob) {
+  const map = evalJob.request && evalJob.request.map;
+  if (map) return `the map ${map}`;
+  const env = evalJob.config.env || {}, test = evalJob.config.split === "test";
+  if (env.rooms === "maps" && env.maps) {
+    const names = test && env.maps.test ? env.maps.test : env.maps.train;
+    const shown = names.map((n) => (n.startsWith("map:") ? n : n.split("/").pop()));
+    if (shown.length === 1) return `map ${shown[0]}`;
+    return `${shown.length} maps (${shown.slice(0, 3).join(", ")}${shown.length > 3 ? ", ..." : ""})`;
+  }
+  return test ? "held-out test rooms" : "training rooms";
+}
+
 async function replayOf(evalJob, into) {
   try {
     const data = await api(`/jobs/${evalJob.id}/artifacts/replay.json`);
     data.pictures = await mapPictures(data);
     player(data, into);
-    const map = evalJob.request && evalJob.request.map;  // an eval asked to drive an uploaded map
-    const where = map ? `the map ${map}` : evalJob.config.split === "test" ? "held-out test rooms" : "training rooms";
+    const where = evalWhere(evalJob);
     into.prepend(h("p", { class: "muted", id: "replay-source" }, `Episodes of eval job `,
       h("a", { href: `/ui/jobs/${evalJob.id}` }, short(evalJob.id)), ` on ${where} (seed ${evalJob.config.seed}).`));
   } catch (e) {
@@ -942,7 +956,7 @@ async function replayPage(id) {
   main.replaceChildren(h("h1", {}, "Replay of ", h("a", { class: "mono", href: `/ui/jobs/${job.id}` }, `${job.kind} job ${short(job.id)}`)),
     chooser, stage);
   if (job.kind === "eval") {
-    chooser.append(h("span", { class: "muted" }, `${job.config.split} rooms, ${job.config.policy === "trained" ? "trained policy" : job.config.policy}`));
+    chooser.append(h("span", { class: "muted" }, `${evalWhere(job)}, ${job.config.policy === "trained" ? "trained policy" : job.config.policy}`));
     if (job.status !== "succeeded") { stage.append(h("p", {}, `This eval job is ${job.status}.`)); return; }
     return replayOf(job, stage);
   }
