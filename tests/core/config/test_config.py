@@ -62,8 +62,8 @@ def test_config__bad_values_name_field_and_range(kwargs, field, allowed):
 
 def test_config__a_room_laid_as_grid_times_cell_gives_back_the_cell():
     # a map laid at a 0.1 m-cell policy's cells: room 48 x 0.1 m, and 4.8 / 48 reads
-    # 0.09999999999999999, below the default step of exactly 0.1 m (it was refused), and a 0.2 m
-    # robot's disc at 0.2 m cells reached two cells instead of one (a different compiled env)
+    # 0.09999999999999999, below the default step of exactly 0.1 m (it was refused), and a robot of
+    # radius 0.2 m at 0.2 m cells reached two cells instead of one (a different compiled env)
     assert 4.8 / 48 < 0.1 == EnvConfig().max_wheel_speed * EnvConfig().dt
     assert EnvConfig(room_size=48 * 0.1, grid_size=48).cell_size == 0.1
     wide = {"robot_radius": 0.2, "room_size": 48 * 0.2, "grid_size": 48}
