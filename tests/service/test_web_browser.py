@@ -257,42 +257,53 @@ def test_browser__replay_of_the_trained_policy_advances_frames(server, page, sho
     assert page.locator("header nav a.active").all_inner_texts() == ["Replay"]
 
 
+def in_a_player(server: str, page, episode: dict, room_size: float, script: str):
+    """Play one written episode in the replay's player (the page's own ``player``, paused, in an
+    element of its own) and return what ``script`` returns. The script's body sees ``data``,
+    ``into``, ``canvas``, ``slider``, ``show(t)`` (go to step t) and ``at(x, y)`` (the canvas's
+    RGB at a point of the room, metres, through the canvas's ``data-view``)."""
+    data = {"agent": "test", "room_size": room_size, "grid_size": len(episode["walls"]),
+            "robot_radius": 0.15, "goal_radius": 0.3, "dt": 0.1, "beam_angles": [],
+            "hit_codes": {"none": 0, "wall": 1, "goal": 2}, "episodes": [episode]}  # fmt: skip
+    page.goto(server + "/ui/")
+    return page.evaluate("""(data) => {
+      const into = document.createElement("div");
+      document.body.append(into);
+      player(data, into);
+      into.querySelector("#play").click();  // pause
+      const slider = into.querySelector("#step-slider"), canvas = into.querySelector("canvas");
+      const show = (t) => { slider.value = String(t); slider.dispatchEvent(new Event("input")); };
+      const at = (x, y) => {
+        const [x0, y0, w] = canvas.dataset.view.split(",").map(Number), s = canvas.width / w;
+        return Array.from(canvas.getContext("2d").getImageData(
+          Math.floor((x - x0) * s), Math.floor(canvas.height - (y - y0) * s), 1, 1).data).slice(0, 3);
+      };
+      const out = (() => {""" + script + """})();
+      into.remove();
+      return out;
+    }""", data)  # fmt: skip
+
+
 def test_browser__replay_draws_the_plan_boxes_and_people_where_they_are(server, page, shots):
     """The replay's canvas draws an episode's global plan (dashed) and the obstacles the map does
     not show (``replay.json``'s ``plan``, ``boxes`` and ``people``; tests/core/eval/
     test_replay_unmapped.py holds them to the env) where they are at the step shown, in the GIFs'
     colours, and its legend names them. The episode is written here: the test run's trained demo
     observes no plan and meets no obstacles."""
-    room = 4.0
     walls = ["########"] + ["#......#"] * 6 + ["########"]
     episode = {"index": 0, "success": True, "steps": 1, "return": 1.0, "walls": walls,
                "goal": [3.1, 3.1], "x": [0.9, 0.95], "y": [3.1, 3.1], "theta": [0.0, 0.0],
                "ranges": [[], []], "hits": [[], []],
                "plan": [[0.75, 0.75], [3.25, 0.75], [3.25, 3.1]], "boxes": [[1.5, 2.0, 0.25]],
                "people": [{"radius": 0.25, "x": [2.5, 2.5], "y": [2.0, 2.6]}]}  # fmt: skip
-    data = {"agent": "test", "room_size": room, "grid_size": 8, "robot_radius": 0.15,
-            "goal_radius": 0.3, "dt": 0.1, "beam_angles": [], "hit_codes": {"none": 0, "wall": 1, "goal": 2},
-            "episodes": [episode]}  # fmt: skip
-    page.goto(server + "/ui/")
-    seen = page.evaluate("""(data) => {
-      const into = document.createElement("div");
-      document.body.append(into);
-      player(data, into);
-      into.querySelector("#play").click();  // pause
-      const slider = into.querySelector("#step-slider"), canvas = into.querySelector("canvas");
-      const at = (x, y) => Array.from(canvas.getContext("2d").getImageData(
-        Math.floor(x * canvas.width / data.room_size), Math.floor(canvas.height - y * canvas.height / data.room_size),
-        1, 1).data).slice(0, 3);
-      const show = (t) => { slider.value = String(t); slider.dispatchEvent(new Event("input")); };
+    seen = in_a_player(server, page, episode, 4.0, """
       show(0);
       const first = {box: at(1.5, 2.0), person: at(2.5, 2.0), plan: [1, 1.5, 2, 2.5, 3].map((x) => at(x, 0.75)),
                      dataset: {...canvas.dataset}};
       show(1);
       const second = {person: at(2.5, 2.6), left: at(2.5, 2.0)};
       const legend = Array.from(into.querySelectorAll(".legend span")).map((s) => s.textContent);
-      into.remove();
-      return {first, second, legend};
-    }""", data)
+      return {first, second, legend};""")  # fmt: skip
     near = lambda rgb, hex_: sum(abs(a - int(hex_[i : i + 2], 16)) for a, i in zip(rgb, (1, 3, 5), strict=True)) < 60  # noqa: E731
     assert near(seen["first"]["box"], "#8c564b"), seen
     assert near(seen["first"]["person"], "#9467bd"), seen
@@ -308,31 +319,16 @@ def test_browser__a_wide_maps_replay_canvas_takes_the_maps_shape(server, page):
     """A map's replay canvas shows the map's own extent in its own shape (520 px along its longer
     side), as the GIFs do (``render.map_view``; the slow maps browser test holds the two equal on
     an uploaded map): a map 4 m wide and 2 m high in an 8-cell grid of 0.5 m cells."""
+    from quicknav_core.env.render import map_view
+
     walls = ["########", "#......#", "#......#"] + ["########"] * 5  # row 0 at the bottom
     episode = {"index": 0, "success": True, "steps": 1, "return": 1.0, "walls": walls, "map": "wide",
                "goal": [3.0, 0.75], "x": [0.75, 0.8], "y": [0.75, 0.75], "theta": [0.0, 0.0],
                "ranges": [[], []], "hits": [[], []]}  # fmt: skip
-    data = {"agent": "test", "room_size": 4.0, "grid_size": 8, "robot_radius": 0.15,
-            "goal_radius": 0.3, "dt": 0.1, "beam_angles": [], "hit_codes": {"none": 0, "wall": 1, "goal": 2},
-            "episodes": [episode]}  # fmt: skip
-    from quicknav_core.env.render import map_view
-
-    x0, x1, y0, y1 = map_view(np.array([[c == "#" for c in row] for row in walls]), 4.0)
-    assert (x0, x1, y0, y1) == (0.0, 4.0, 0.0, 2.0)
-    page.goto(server + "/ui/")
-    seen = page.evaluate("""(data) => {
-      const into = document.createElement("div");
-      document.body.append(into);
-      player(data, into);
-      into.querySelector("#play").click();  // pause
-      const canvas = into.querySelector("canvas");
-      const at = (x, y) => Array.from(canvas.getContext("2d").getImageData(
-        Math.floor(x * 130), Math.floor(canvas.height - y * 130), 1, 1).data).slice(0, 3);
-      const out = {size: [canvas.width, canvas.height], view: canvas.dataset.view,
-                   floor: at(2.0, 1.2), wall: at(2.0, 1.8)};
-      into.remove();
-      return out;
-    }""", data)
+    assert map_view(np.array([[c == "#" for c in row] for row in walls]), 4.0) == (0.0, 4.0, 0.0, 2.0)
+    seen = in_a_player(server, page, episode, 4.0, """
+      return {size: [canvas.width, canvas.height], view: canvas.dataset.view,
+              floor: at(2.0, 1.2), wall: at(2.0, 1.8)};""")  # fmt: skip
     assert seen["size"] == [520, 260] and seen["view"] == "0,0,4,2", seen
     assert seen["floor"] == [244, 241, 234] and seen["wall"] == [59, 59, 59], seen
 
