@@ -12,6 +12,7 @@ a test that runs far more than it compiles takes the ``optimized`` fixture.
 from __future__ import annotations
 
 import atexit
+import json
 import os
 import shutil
 import tempfile
@@ -63,20 +64,29 @@ def pytest_xdist_auto_num_workers(config):
     return cores if slow_only else cores + 1
 
 
+@pytest.hookimpl(trylast=True)  # after `-m` has deselected: only this run's tests count
 def pytest_collection_modifyitems(items):
-    """The order xdist hands out modules (``--dist loadfile``, whole modules to a worker): modules
-    marked ``long_module`` first, longest first, then the rest by their number of tests
-    (xdist's own order, which alone would start a one-test module of three minutes last and leave
-    the other worker idle while it runs)."""
+    """The order xdist hands out modules (``--dist loadfile``: a module's tests of this run are one
+    unit, given to the next worker that is nearly idle): the longest first, by the wall seconds
+    ``tests/module_seconds.json`` recorded for each module's tests of each suite (a module with slow
+    and fast tests in one run counts both), so that no long module starts last and keeps one
+    worker busy while the others have nothing left. A module the file does not know goes first (it
+    may be long). Refresh the file after a change that moves a module's time a lot:
+    ``uv run pytest -p tests.cpu_profile`` for both suites into one ``QUICKNAV_CPU_PROFILE`` folder,
+    then ``uv run python -m tests.cpu_profile FOLDER``."""
+    from tests.cpu_profile import MODULE_SECONDS
+
+    recorded = json.loads(MODULE_SECONDS.read_text())
     modules: dict[str, list] = {}
     for item in items:
         modules.setdefault(item.nodeid.split("::", 1)[0], []).append(item)
 
-    def order(unit: list) -> tuple[int, int]:
-        marker = unit[0].get_closest_marker("long_module")
-        return (0, -marker.args[0]) if marker else (1, -len(unit))
+    def order(name: str) -> tuple[int, float]:
+        suites = {"slow" if i.get_closest_marker("slow") else "fast" for i in modules[name]}
+        seconds = [recorded[suite].get(name) for suite in suites]
+        return (1, -sum(seconds)) if None not in seconds else (0, 0.0)
 
-    items[:] = [item for unit in sorted(modules.values(), key=order) for item in unit]
+    items[:] = [item for name in sorted(modules, key=order) for item in modules[name]]
 
 
 @pytest.fixture

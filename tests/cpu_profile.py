@@ -9,6 +9,10 @@ compiles, the seconds of XLA's step (compiling, or loading from JAX's persistent
 tracing and lowering to MLIR (paid on a cache hit too), and the programs loaded from that cache. Every test's row is written, as JSON lines, to the
 folder it names (``QUICKNAV_CPU_PROFILE``, a temporary folder if unset), one file per process.
 
+The modules' wall seconds, the order xdist is given them in (``tests/conftest.py``), come from such a
+run of both suites: ``python -m tests.cpu_profile FOLDER`` writes them to
+``tests/module_seconds.json``.
+
 On the fast suite of 2026-11 (2-core AMD EPYC VM): the test processes' CPU was 670 s, 602 s of it
 JAX's (3,266 programs compiled and 1,703 loaded from the cache, 358 s; tracing 106 s; lowering
 138 s): a test that builds fewer programs is quicker, one that runs a little less rarely is.
@@ -102,7 +106,7 @@ def pytest_configure(config) -> None:
 
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_protocol(item, nextitem):
-    row = {"test": item.nodeid}
+    row = {"test": item.nodeid, "slow": item.get_closest_marker("slow") is not None}
     with _recorder.measure(row):
         yield
     with open(Path(os.environ[FOLDER]) / f"{os.getpid()}.jsonl", "a") as out:
@@ -127,3 +131,44 @@ def pytest_terminal_summary(terminalreporter) -> None:
     write(f"{'all':58s} {total['wall_s']:6.1f} {total['cpu_s']:6.1f} {total['children_s']:6.1f}"
           f" {total['compiles']:6.0f} {total['compile_s']:6.1f} {total['trace_s']:6.1f}"
           f" {total['lower_s']:6.1f} {total['cache_hits']:5.0f}")  # fmt: skip
+
+
+MODULE_SECONDS = Path(__file__).with_name("module_seconds.json")
+
+
+def module_seconds(folder: Path) -> dict[str, dict[str, float]]:
+    """Each test module's wall seconds in ``folder``'s rows, per suite (``fast``: its tests not
+    marked slow, ``slow``: those marked), a module's tests of a suite being one xdist work unit."""
+    out: dict[str, dict[str, float]] = {"fast": {}, "slow": {}}
+    for path in sorted(folder.glob("*.jsonl")):
+        for line in path.read_text().splitlines():
+            test = json.loads(line)
+            suite = out["slow" if test.get("slow") else "fast"]
+            module = test["test"].split("::", 1)[0]
+            suite[module] = suite.get(module, 0.0) + test["wall_s"]
+    return {k: {m: round(s, 1) for m, s in sorted(v.items())} for k, v in out.items()}
+
+
+def main(argv: list[str] | None = None) -> None:
+    import argparse
+    import platform
+
+    parser = argparse.ArgumentParser(description="Write tests/module_seconds.json from a profiled run"
+                                     " of both suites (the folder QUICKNAV_CPU_PROFILE named).")  # fmt: skip
+    parser.add_argument("folder", type=Path)
+    parser.add_argument("--machine", default=platform.processor() or platform.machine(),
+                        help="the machine the run was on, in words")  # fmt: skip
+    args = parser.parse_args(argv)
+    seconds = module_seconds(args.folder)
+    if not seconds["fast"] or not seconds["slow"]:
+        raise SystemExit(f"{args.folder} holds rows of {'the slow suite only' if seconds['slow'] else 'the fast suite only'}"
+                         " (or none): profile both suites into one folder")  # fmt: skip
+    doc = {"about": "wall seconds of each test module per suite, from one profiled run of both (tests/"
+                    "cpu_profile.py); tests/conftest.py hands xdist the modules longest first",
+           "machine": args.machine, "recorded": time.strftime("%Y-%m-%d"), **seconds}  # fmt: skip
+    MODULE_SECONDS.write_text(json.dumps(doc, indent=1) + "\n")
+    print(f"wrote {MODULE_SECONDS}: {len(seconds['fast'])} modules of the fast suite, {len(seconds['slow'])} of the slow")
+
+
+if __name__ == "__main__":
+    main()

@@ -16,8 +16,6 @@ from tests.journeys.readme import ROOT, Runner
 from tests.journeys.test_readme_journeys import walk
 from tests.service.conftest import free_port
 
-pytestmark = pytest.mark.long_module(125)  # the building training + journey, ~90-130 s
-
 
 @pytest.fixture
 def runner(tmp_path):

@@ -29,8 +29,6 @@ from quicknav_core.config.resolve import resolve_train
 from tests.journeys.readme import ROOT, Runner, doc_files, http_status, journey, journey_blocks
 from tests.service.conftest import free_port
 
-pytestmark = pytest.mark.long_module(135)  # README walked, ~135 s in the slow suite
-
 JOURNEYS = ("quickstart", "in-process")
 
 

@@ -19,8 +19,6 @@ from quicknav_core.bench.memory import CASES, MB, case_request, estimate, peak_r
 from tests.compile_settings import as_a_user_runs
 from tests.journeys.readme import ROOT
 
-pytestmark = pytest.mark.long_module(120)  # six measured processes, ~120 s in the slow suite
-
 RECORDED = {r["case"]: r for r in json.loads((ROOT / "benchmarks/results/memory.json").read_text())["rows"]}
 # the larger size of each algorithm and network kind
 LIVE = ("ppo-mlp-2048", "sac-1m", "td3-1m", "mlp-memory-1024", "lstm-1024", "gtrxl-2048")
