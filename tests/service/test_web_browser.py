@@ -337,6 +337,27 @@ def success_in_table(page) -> float:
     return float(row.split("%")[0]) / 100
 
 
+def test_browser__replay_words_name_an_uploaded_map_by_its_name(server, page):
+    """Where a replay's episodes were, in words (``evalWhere``): an uploaded map by the name it was
+    given (``mapNames`` asks the API), a map file by its file name, a room bank by its split; a
+    map the API no longer knows keeps its reference."""
+    page.goto(server + "/ui/")
+    words = page.evaluate("""async () => {
+      const job = (maps, split, request) => ({ request: request || {}, config: { split, env: { rooms: "maps", maps } } });
+      const gone = job({ train: ["map:0123456789abcdef"] }, "test");
+      return [
+        evalWhere(job({ train: ["map:aaaa"] }, "test"), { "map:aaaa": "test room" }),
+        evalWhere(job({ train: ["/x/office.yaml", "map:aaaa"], test: ["map:bbbb"] }, "test"), { "map:bbbb": "annex" }),
+        evalWhere(job({ train: ["/x/office.yaml", "map:aaaa"] }, "test"), { "map:aaaa": "test room" }),
+        evalWhere(job({ train: ["map:aaaa"] }, "test", { map: "map:cccc" }), { "map:cccc": "depot" }),
+        evalWhere({ request: {}, config: { split: "test", env: { rooms: "floorplan" } } }),
+        evalWhere(gone, await mapNames(gone)),
+      ];
+    }""")  # fmt: skip
+    assert words == ['map "test room"', 'map "annex"', '2 maps (office.yaml, "test room")', 'the map "depot"',
+                     "held-out test rooms", "map map:0123456789abcdef"], words  # fmt: skip
+
+
 def test_browser__journey_from_the_trained_job_runs_an_eval_reads_its_metrics_and_replays(
     server, page, shots, demo, data_dir
 ):

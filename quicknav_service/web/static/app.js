@@ -920,19 +920,35 @@ async function mapPictures(data) {
   return out;
 }
 
-// where an eval job's episodes were driven, in words: an uploaded map it was asked to drive, the
-// maps of a policy trained on maps, or a room bank (eval.pictures.rooms_in_words, the same words)
-function evalWhere(evalJob) {
+// the maps an eval job drove in: an uploaded map or file it was asked to drive, or the maps of a
+// policy trained on maps (the held-out ones where it ran on them); none for a room bank
+function evalMaps(evalJob) {
   const map = evalJob.request && evalJob.request.map;
-  if (map) return `the map ${map}`;
-  const env = evalJob.config.env || {}, test = evalJob.config.split === "test";
-  if (env.rooms === "maps" && env.maps) {
-    const names = test && env.maps.test ? env.maps.test : env.maps.train;
-    const shown = names.map((n) => (n.startsWith("map:") ? n : n.split("/").pop()));
-    if (shown.length === 1) return `map ${shown[0]}`;
-    return `${shown.length} maps (${shown.slice(0, 3).join(", ")}${shown.length > 3 ? ", ..." : ""})`;
-  }
-  return test ? "held-out test rooms" : "training rooms";
+  if (map) return [map];
+  const env = evalJob.config.env || {};
+  if (env.rooms !== "maps" || !env.maps) return [];
+  return evalJob.config.split === "test" && env.maps.test ? env.maps.test : env.maps.train;
+}
+
+// the names of the uploaded maps among an eval job's first three (map:<id> -> its name); a map
+// deleted since keeps its reference
+async function mapNames(evalJob) {
+  const out = {};
+  await Promise.all(evalMaps(evalJob).slice(0, 3).filter((r) => r.startsWith("map:")).map(async (ref) => {
+    try { out[ref] = (await api(`/maps/${encodeURIComponent(ref.slice(4))}`)).name; } catch { /* its ref */ }
+  }));
+  return out;
+}
+
+// where an eval job's episodes were driven, in words: an uploaded map by its name, a map file by
+// its file name, or a room bank (eval.pictures.rooms_in_words, the same words but for the names)
+function evalWhere(evalJob, names = {}) {
+  const label = (n) => (names[n] ? `"${names[n]}"` : n.startsWith("map:") ? n : n.split("/").pop());
+  const maps = evalMaps(evalJob).map(label);
+  if (evalJob.request && evalJob.request.map) return `the map ${maps[0]}`;
+  if (maps.length === 1) return `map ${maps[0]}`;
+  if (maps.length) return `${maps.length} maps (${maps.slice(0, 3).join(", ")}${maps.length > 3 ? ", ..." : ""})`;
+  return evalJob.config.split === "test" ? "held-out test rooms" : "training rooms";
 }
 
 async function replayOf(evalJob, into) {
@@ -940,7 +956,7 @@ async function replayOf(evalJob, into) {
     const data = await api(`/jobs/${evalJob.id}/artifacts/replay.json`);
     data.pictures = await mapPictures(data);
     player(data, into);
-    const where = evalWhere(evalJob);
+    const where = evalWhere(evalJob, await mapNames(evalJob));
     into.prepend(h("p", { class: "muted", id: "replay-source" }, `Episodes of eval job `,
       h("a", { href: `/ui/jobs/${evalJob.id}` }, short(evalJob.id)), ` on ${where} (seed ${evalJob.config.seed}).`));
   } catch (e) {
@@ -956,7 +972,7 @@ async function replayPage(id) {
   main.replaceChildren(h("h1", {}, "Replay of ", h("a", { class: "mono", href: `/ui/jobs/${job.id}` }, `${job.kind} job ${short(job.id)}`)),
     chooser, stage);
   if (job.kind === "eval") {
-    chooser.append(h("span", { class: "muted" }, `${evalWhere(job)}, ${job.config.policy === "trained" ? "trained policy" : job.config.policy}`));
+    chooser.append(h("span", { class: "muted" }, `${evalWhere(job, await mapNames(job))}, ${job.config.policy === "trained" ? "trained policy" : job.config.policy}`));
     if (job.status !== "succeeded") { stage.append(h("p", {}, `This eval job is ${job.status}.`)); return; }
     return replayOf(job, stage);
   }
