@@ -13,10 +13,15 @@ can drive between them.
 ROS map_server's YAML (as gmapping, cartographer and slam_toolbox save it): ``image`` (relative
 to the YAML), ``resolution`` (m/pixel), ``origin`` ([x, y, yaw] of the lower-left pixel: yaw must
 be 0), ``occupied_thresh``, ``free_thresh``, ``negate`` and ``mode`` (``trinary``, the default, or
-``scale``; both read occupancy the same way here). A pixel's occupancy is ``(255 - v) / 255``
-(``negate: 1``: ``v / 255``): above ``occupied_thresh`` it is occupied, below ``free_thresh`` free,
-between the two unknown. A plain PNG/PGM is read the same way with the thresholds and the
-resolution given in the config (dark = occupied).
+``scale``). A pixel's occupancy is ``(255 - v) / 255`` (``negate: 1``: ``v / 255``): above
+``occupied_thresh`` it is occupied, below ``free_thresh`` free, between the two unknown (``scale``
+grades those; QuickNav, which has no graded cells, keeps them unknown). ``v`` is the pixel's grey
+level; of a colour image, or one with an alpha channel, it is Nav2's map_server rule (``map_io``):
+the mean of red, green and blue, and in ``trinary`` mode the alpha (255 = opaque) averaged in as a
+fourth channel; in ``scale`` mode alpha is not averaged and a pixel that is not opaque is unknown.
+(ROS 1's map_server averages a grey-and-alpha image's two channels as two; Nav2, read here, as
+three grey and one alpha.) A plain PNG/PGM is read the same way, as ``trinary``, with the
+thresholds and the resolution given in the config (dark = occupied).
 """
 
 from __future__ import annotations
@@ -137,8 +142,10 @@ class OccupancyMap:
         return w * self.resolution, h * self.resolution
 
 
-def _read_image(path: Path) -> np.ndarray:
-    """Grey levels 0..255 as (H, W) uint8, top row first (as the picture is drawn)."""
+def _read_image(path: Path, mode: str = "trinary") -> tuple[np.ndarray, np.ndarray | None]:
+    """The pixels' levels 0..255, (H, W), top row first (as the picture is drawn), by map_server's
+    rule for ``mode`` (the module doc): uint8 of a grey image, float32 means of a colour one or one
+    with alpha; and, in ``scale`` mode, the pixels that are not opaque (None when all are)."""
     from PIL import Image, UnidentifiedImageError
 
     if not path.is_file():
@@ -153,8 +160,8 @@ def _read_image(path: Path) -> np.ndarray:
             if im.mode in ("I", "I;16", "I;16B", "F"):  # 16-bit PGM: scale to 8 bits
                 arr = np.asarray(im, dtype=np.float64)
                 top = max(float(arr.max()), 1.0)
-                return np.clip(np.round(arr / (65535.0 if top > 255 else 255.0) * 255), 0, 255).astype(np.uint8)
-            return np.asarray(im.convert("L"), dtype=np.uint8)
+                return np.clip(np.round(arr / (65535.0 if top > 255 else 255.0) * 255), 0, 255).astype(np.uint8), None
+            return _levels(im, mode)
     except MapError:
         raise
     except UnidentifiedImageError:
@@ -163,6 +170,23 @@ def _read_image(path: Path) -> np.ndarray:
     except (OSError, ValueError, SyntaxError) as e:  # truncated data, a broken header
         raise MapError(f"{path}: the image cannot be read ({shown(str(e), 120)}); it may be"
                        " truncated") from None  # fmt: skip
+
+
+def _levels(im, mode: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """A decoded 8-bit picture's levels and its pixels that are not opaque (``_read_image``)."""
+    if im.mode == "P":  # a palette: its colours, with alpha where the palette has transparency
+        im = im.convert("RGBA" if "transparency" in im.info else "RGB")
+    if im.mode in ("1", "L"):
+        return np.asarray(im.convert("L"), dtype=np.uint8), None
+    alpha = im.mode in ("LA", "RGBA", "PA", "La", "RGBa")
+    rgb = np.asarray(im.convert("RGB"), dtype=np.uint16).sum(axis=2, dtype=np.uint16)  # 0..765
+    if not alpha:
+        return (rgb / np.float32(3.0)).astype(np.float32), None
+    a = np.asarray(im.getchannel("A"), dtype=np.uint8)
+    if mode == "scale":  # alpha is not averaged; a pixel that is not opaque is unknown
+        transparent = a < 255
+        return (rgb / np.float32(3.0)).astype(np.float32), (transparent if transparent.any() else None)
+    return ((rgb + a) / np.float32(4.0)).astype(np.float32), None
 
 
 def header_size(head: bytes) -> tuple[int, int] | None:
@@ -190,21 +214,28 @@ def check_pixels(head: bytes, where: Path | str, limit: int) -> None:
 
 
 def occupancy(grey: np.ndarray, occupied_thresh: float, free_thresh: float, negate: bool,
-              unknown_free: bool) -> np.ndarray:  # fmt: skip
-    """Blocked pixels of a grey picture by map_server's rule."""
+              unknown_free: bool, transparent: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+    """Blocked pixels of a picture's levels by map_server's rule (``transparent``: pixels a
+    ``scale`` map leaves unknown whatever their level)."""
     v = grey.astype(np.float64) / 255.0
     p = v if negate else 1.0 - v
     occupied = p > occupied_thresh
     free = p < free_thresh
+    if transparent is not None:
+        occupied &= ~transparent
+        free &= ~transparent
     return occupied | (~free & (not unknown_free))
 
 
 def unknown_pixels(grey: np.ndarray, occupied_thresh: float, free_thresh: float,
-                   negate: bool) -> np.ndarray:  # fmt: skip
+                   negate: bool, transparent: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
     """Pixels that are neither occupied nor free, y up (for pictures of the map)."""
     v = grey.astype(np.float64) / 255.0
     p = v if negate else 1.0 - v
-    return np.ascontiguousarray(((p <= occupied_thresh) & (p >= free_thresh))[::-1])
+    unknown = (p <= occupied_thresh) & (p >= free_thresh)
+    if transparent is not None:
+        unknown |= transparent
+    return np.ascontiguousarray(unknown[::-1])
 
 
 def load_map(path: str | Path, resolution: float | None = None, occupied_thresh: float = 0.65,
@@ -221,7 +252,7 @@ def load_map(path: str | Path, resolution: float | None = None, occupied_thresh:
     if resolution is None:
         raise MapError(f"{path}: a plain image needs its scale: set maps.resolution (metres per"
                        " pixel), or give the map_server .yaml that names it")  # fmt: skip
-    grey = _read_image(path)
+    grey, _ = _read_image(path)  # a plain image is read as a trinary map
     blocked = occupancy(grey, occupied_thresh, free_thresh, negate, unknown_free)[::-1]
     return OccupancyMap(str(path), np.ascontiguousarray(blocked), float(resolution),
                         unknown=unknown_pixels(grey, occupied_thresh, free_thresh, negate))  # fmt: skip
@@ -269,10 +300,10 @@ def _load_yaml(path: Path, unknown_free: bool) -> OccupancyMap:
     mode = str(doc.get("mode", "trinary"))
     if mode not in ("trinary", "scale"):
         raise MapError(f"{path}: field 'mode' is {shown(mode)}; QuickNav reads 'trinary' and 'scale' maps")
-    grey = _read_image(image)
-    blocked = occupancy(grey, occ, free, negate, unknown_free)[::-1]
+    grey, transparent = _read_image(image, mode)
+    blocked = occupancy(grey, occ, free, negate, unknown_free, transparent)[::-1]
     return OccupancyMap(str(path), np.ascontiguousarray(blocked), resolution, (origin[0], origin[1]),
-                        unknown=unknown_pixels(grey, occ, free, negate),
+                        unknown=unknown_pixels(grey, occ, free, negate, transparent),
                         meta={"image": str(image), "negate": negate, "mode": mode})  # fmt: skip
 
 

@@ -188,6 +188,57 @@ def test_map__negated_and_unknown_pixels_are_read_the_right_way(tmp_path):
     assert np.array_equal(free.blocked, drawn[::-1])
 
 
+def nav2_reads(pixel: tuple[int, ...], mode: str, negate: bool = False, occ_th: float = 0.65,
+               free_th: float = 0.196) -> str:
+    """Nav2 map_server's reading of one pixel (map_io's loop, written out): the pixel's red,
+    green and blue (a grey pixel's three equal), with its alpha (255 = opaque) as a fourth in
+    trinary mode; in scale mode a pixel that is not opaque is unknown."""
+    rgb, alpha = list(pixel[:3]), (pixel[3] if len(pixel) == 4 else None)
+    channels = rgb + ([alpha] if mode == "trinary" and alpha is not None else [])
+    shade = sum(channels) / len(channels) / 255.0
+    occ = shade if negate else 1.0 - shade
+    if mode == "scale" and alpha is not None and alpha != 255:
+        return "unknown"
+    return "occupied" if occ > occ_th else "free" if occ < free_th else "unknown"
+
+
+@pytest.mark.parametrize("image_mode,mode", [("RGB", "trinary"), ("RGBA", "trinary"), ("RGBA", "scale"),
+                                             ("LA", "trinary"), ("LA", "scale"), ("P", "trinary")])  # fmt: skip
+def test_map__colour_and_alpha_pixels_are_read_as_nav2_reads_them(tmp_path, image_mode, mode):
+    """A PNG in colour or with alpha is read by Nav2 map_server's rule (the mean of the channels,
+    alpha averaged in for trinary maps, a see-through pixel unknown in scale maps), not by a grey
+    conversion's weights: green (0, 255, 0) is occupied to map_server, and the usual unknown grey
+    205, opaque in an RGBA picture, is free in trinary mode."""
+    from PIL import Image
+
+    rgb = [(0, 0, 0), (254, 254, 254), (205, 205, 205), (0, 255, 0), (255, 255, 0), (0, 0, 255),
+           (120, 200, 60), (255, 255, 255), (100, 100, 100), (170, 170, 170)]  # fmt: skip
+    alphas = [255, 255, 255, 0, 128, 255, 254, 0, 255, 40]
+    if image_mode == "LA":
+        pixels = [(r, a) for (r, _, _), a in zip(rgb, alphas, strict=True)]
+        seen = [(v, v, v, a) for v, a in pixels]
+    elif image_mode == "RGBA":
+        pixels = [(*c, a) for c, a in zip(rgb, alphas, strict=True)]
+        seen = pixels
+    else:
+        pixels = seen = rgb
+    im = Image.new(image_mode if image_mode != "P" else "RGB", (len(pixels), 1))
+    im.putdata(pixels)
+    if image_mode == "P":
+        im = im.convert("P", palette=Image.Palette.ADAPTIVE, colors=16)
+        seen = list(im.convert("RGB").getdata())  # the palette's colours, as map_server sees them
+    im.save(tmp_path / "map.png")
+    (tmp_path / "map.yaml").write_text(f"image: map.png\nmode: {mode}\nresolution: 0.5\norigin: [0, 0, 0]\n"
+                                       "negate: 0\noccupied_thresh: 0.65\nfree_thresh: 0.196\n")  # fmt: skip
+    expected = [nav2_reads(px, mode) for px in seen]
+    assert {"occupied", "free", "unknown"} <= set(expected)  # the row tries every outcome
+    m = load_map(tmp_path / "map.yaml")
+    got = ["unknown" if u else "occupied" if b else "free" for b, u in zip(m.blocked[0], m.unknown[0], strict=True)]
+    assert got == expected, list(zip(seen, got, expected, strict=True))
+    free = load_map(tmp_path / "map.yaml", unknown_free=True)
+    assert free.blocked[0].tolist() == [e == "occupied" for e in expected]
+
+
 def test_map__fine_pixels_are_laid_on_cells_conservatively(tmp_path):
     # 0.1 m pixels, 0.5 m cells: one occupied pixel walls exactly the cells it overlaps
     drawn = np.zeros((40, 40), dtype=bool)
