@@ -179,14 +179,20 @@ def _levels(im, mode: str) -> tuple[np.ndarray, np.ndarray | None]:
     if im.mode in ("1", "L"):
         return np.asarray(im.convert("L"), dtype=np.uint8), None
     alpha = im.mode in ("LA", "RGBA", "PA", "La", "RGBa")
-    rgb = np.asarray(im.convert("RGB"), dtype=np.uint16).sum(axis=2, dtype=np.uint16)  # 0..765
+    if im.mode not in ("RGB", "RGBA"):
+        im = im.convert("RGBA" if alpha else "RGB")
+    px = np.asarray(im)  # (H, W, 3 or 4) uint8; summed a channel at a time, 2 bytes a pixel
+    rgb = px[..., 0].astype(np.uint16)
+    rgb += px[..., 1]
+    rgb += px[..., 2]
     if not alpha:
         return (rgb / np.float32(3.0)).astype(np.float32), None
-    a = np.asarray(im.getchannel("A"), dtype=np.uint8)
+    a = px[..., 3]
     if mode == "scale":  # alpha is not averaged; a pixel that is not opaque is unknown
         transparent = a < 255
         return (rgb / np.float32(3.0)).astype(np.float32), (transparent if transparent.any() else None)
-    return ((rgb + a) / np.float32(4.0)).astype(np.float32), None
+    rgb += a
+    return (rgb / np.float32(4.0)).astype(np.float32), None
 
 
 def header_size(head: bytes) -> tuple[int, int] | None:
@@ -213,12 +219,21 @@ def check_pixels(head: bytes, where: Path | str, limit: int) -> None:
                        " map may have; save it at a coarser resolution")  # fmt: skip
 
 
+def _occupancy_of(levels: np.ndarray, negate: bool) -> np.ndarray:
+    """Each pixel's occupancy, ``(255 - v) / 255`` (``negate``: ``v / 255``), in one float64 array
+    (a large map's read holds 8 bytes a pixel here, not twice that)."""
+    p = levels.astype(np.float64)
+    p /= 255.0
+    if not negate:
+        np.subtract(1.0, p, out=p)
+    return p
+
+
 def occupancy(grey: np.ndarray, occupied_thresh: float, free_thresh: float, negate: bool,
               unknown_free: bool, transparent: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
     """Blocked pixels of a picture's levels by map_server's rule (``transparent``: pixels a
     ``scale`` map leaves unknown whatever their level)."""
-    v = grey.astype(np.float64) / 255.0
-    p = v if negate else 1.0 - v
+    p = _occupancy_of(grey, negate)
     occupied = p > occupied_thresh
     free = p < free_thresh
     if transparent is not None:
@@ -230,8 +245,7 @@ def occupancy(grey: np.ndarray, occupied_thresh: float, free_thresh: float, nega
 def unknown_pixels(grey: np.ndarray, occupied_thresh: float, free_thresh: float,
                    negate: bool, transparent: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
     """Pixels that are neither occupied nor free, y up (for pictures of the map)."""
-    v = grey.astype(np.float64) / 255.0
-    p = v if negate else 1.0 - v
+    p = _occupancy_of(grey, negate)
     unknown = (p <= occupied_thresh) & (p >= free_thresh)
     if transparent is not None:
         unknown |= transparent
