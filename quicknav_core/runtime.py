@@ -12,6 +12,8 @@ It holds
 
 - ``bank_folder``: where built room banks are kept on disk (None: in memory only);
 - ``map_resolver``: how ``map:<id>`` names of uploaded maps become local files (a service sets it);
+- ``map_name``: the name a user gave an uploaded map (``map:<id>`` -> ``"depot"``, None if it has
+  none or is gone), for pictures' titles (a service sets it);
 - ``artifacts``: the artifact store of a service process (the library never reads it);
 - caches: room banks (``banks``, bounded by bytes), compiled programs and what makes them
   shareable (``programs``) and warm trainers (``trainers``), both bounded by count; each value is
@@ -103,6 +105,7 @@ class Runtime:
 
     bank_folder: Path | None = None
     map_resolver: Callable[[str], Path] | None = None
+    map_name: Callable[[str], str | None] | None = None
     artifacts: Any = None
     max_programs: int = 64
     max_bank_bytes: int = 256 * 2**20

@@ -309,6 +309,11 @@ class MapLibrary:
         data = self.artifacts.read_bytes(f"{MAPS}/{map_id}", "meta.json")
         return json.loads(data) if data is not None else None
 
+    def name(self, map_id: str) -> str | None:
+        """The name the map was uploaded with (None: no such map)."""
+        meta = self.get(map_id)
+        return meta.get("name") if meta is not None else None
+
     def list(self) -> list[dict[str, Any]]:
         """Every stored map, newest first."""
         found = [m for i in self.artifacts.folders(MAPS) if (m := self.get(i)) is not None]

@@ -20,4 +20,4 @@ def service_runtime(settings: Settings, artifacts: ArtifactStore | None = None) 
     artifacts = artifacts if artifacts is not None else make_artifacts(settings)
     maps = MapLibrary(artifacts, settings.max_map_pixels)
     return Runtime(bank_folder=settings.data_dir / "room-banks", map_resolver=maps.local_yaml,
-                   artifacts=artifacts)  # fmt: skip
+                   map_name=maps.name, artifacts=artifacts)  # fmt: skip

@@ -101,6 +101,7 @@ def pytest_configure(config) -> None:
     global _recorder  # this plugin's own state, in a test process only
     if not os.environ.get(FOLDER):  # the first process names it; xdist workers inherit it
         os.environ[FOLDER] = tempfile.mkdtemp(prefix="quicknav-cpu-profile-")
+    Path(os.environ[FOLDER]).mkdir(parents=True, exist_ok=True)  # a folder the user named
     _recorder = Recorder()
 
 

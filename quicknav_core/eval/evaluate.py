@@ -84,7 +84,8 @@ def evaluate(
         if cfg.pictures:
             result["warnings"] = draw_all(ep, env_config, result["by_path_length"], out_dir,
                                           agent.name, gif=bool(cfg.gif_episodes),
-                                          robustness=result.get("robustness"), split=cfg.split)  # fmt: skip
+                                          robustness=result.get("robustness"), split=cfg.split,
+                                          map_name=runtime.map_name)  # fmt: skip
             if result["warnings"]:
                 write_json(out_dir / EVAL.result, result)
     return result, ep

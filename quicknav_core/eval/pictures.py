@@ -8,7 +8,7 @@ naming the file, and never costs the evaluation its numbers (eval.json is writte
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -29,12 +29,24 @@ def picture_warning(name: str, error: BaseException) -> str:
     return f"{name} was not drawn: {type(error).__name__}{': ' + why if why else ''}"
 
 
-def rooms_in_words(config: EnvConfig, split: str = "test") -> str:
-    """Where an evaluation's episodes were, for a picture's title: the map's file name when it
-    ran on maps, else the room bank it drew from."""
+def rooms_in_words(config: EnvConfig, split: str = "test",
+                   map_name: Callable[[str], str | None] | None = None) -> str:  # fmt: skip
+    """Where an evaluation's episodes were, for a picture's title: a map by its file name, or an
+    uploaded map by the name ``map_name`` (``Runtime.map_name``) gives it (its ``map:<id>`` when
+    none), as the browser's replay words them; else the room bank it drew from."""
     if config.rooms == "maps":
         names = config.maps.test if split == "test" and config.maps.test else config.maps.train
-        shown = [n if n.startswith("map:") else Path(n).name for n in names]
+
+        def shown_as(ref: str) -> str:
+            if not ref.startswith("map:"):
+                return Path(ref).name
+            try:
+                name = map_name(ref[4:]) if map_name is not None else None
+            except Exception:  # a title never fails a picture
+                name = None
+            return f'"{name}"' if name else ref
+
+        shown = [shown_as(n) for n in names[:3]] + names[3:]
         if len(shown) == 1:
             return f"map {shown[0]}"
         return f"{len(shown)} maps ({', '.join(shown[:3])}{', ...' if len(shown) > 3 else ''})"
@@ -44,11 +56,13 @@ def rooms_in_words(config: EnvConfig, split: str = "test") -> str:
 def draw_all(
     ep: Episodes, config: EnvConfig, rows: list[dict[str, Any]], out_dir: Path, title: str,
     gif: bool = True, robustness: list[dict[str, Any]] | None = None, split: str = "test",
+    map_name: Callable[[str], str | None] | None = None,
 ) -> list[str]:  # fmt: skip
-    """Draw every picture of an evaluation into ``out_dir``; the warnings of those that failed."""
+    """Draw every picture of an evaluation into ``out_dir``; the warnings of those that failed.
+    ``map_name``: uploaded maps' names for the titles (``rooms_in_words``)."""
     import matplotlib.pyplot as plt
 
-    where = rooms_in_words(config, split)
+    where = rooms_in_words(config, split, map_name)
     jobs = [(EVAL.trajectories, lambda p: draw_trajectories(ep, config, p, title=title, where=where)),
             (EVAL.difficulty, lambda p: draw_difficulty(rows, p, title=title))]  # fmt: skip
     if robustness:

@@ -223,11 +223,12 @@ def test_uploaded_maps_are_stored_once_and_read_on_another_machine(stores):
     assert a.add(files)["id"] == meta["id"]  # the same files: the same map, stored once
     assert [m["id"] for m in b.list()] == [meta["id"]] and b.get(meta["id"]) == meta
     assert b.preview(meta["id"])[:8] == b"\x89PNG\r\n\x1a\n"
+    assert b.name(meta["id"]) == "room"  # for pictures' titles (Runtime.map_name)
     path = b.local_yaml(meta["id"])
     assert load_map(path).blocked.shape == (152, 152)
     assert (path.parent / "map.pgm").read_bytes() == pgm(room_picture())
     a.delete(meta["id"])
-    assert b.list() == [] and b.get(meta["id"]) is None
+    assert b.list() == [] and b.get(meta["id"]) is None and b.name(meta["id"]) is None
     with pytest.raises(MapError, match="no such map"):  # B's cached copy does not outlive it
         b.local_yaml(meta["id"])
     with pytest.raises(MapError, match="no such map"):

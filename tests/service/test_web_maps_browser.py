@@ -103,11 +103,15 @@ def test_browser__upload_a_map_train_on_it_evaluate_and_replay_on_its_picture(
     assert ev["config"]["env"]["maps"]["train"] == [m["ref"]] and ev["warnings"] == []
 
     # the replay: the map's picture under the grid's walls; its episodes were on the map (held-out
-    # episodes on the map the policy trained on, no held-out rooms), named as it was uploaded
+    # episodes on the map the policy trained on, no held-out rooms), named as it was uploaded (the
+    # page asks the API for the map's name once, for the chooser's words and the replay's)
+    named = []
+    page.on("request", lambda r: named.append(r.url) if r.url.endswith(f"/maps/{m['ref'][4:]}") else None)
     page.click("#replay-link")
     canvas = page.locator("#replay-canvas")
     canvas.wait_for(timeout=20_000)
     assert 'on map "test room" (seed' in page.inner_text("#replay-source"), page.inner_text("#replay-source")
+    assert len(named) == 1, named
     page.wait_for_timeout(300)
     # the canvas shows the map's own extent (its free cells and the wall ring around them), as
     # the GIFs do (render.map_view on the same grid, computed here in Python), in its shape

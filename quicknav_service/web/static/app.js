@@ -941,7 +941,7 @@ async function mapNames(evalJob) {
 }
 
 // where an eval job's episodes were driven, in words: an uploaded map by its name, a map file by
-// its file name, or a room bank (eval.pictures.rooms_in_words, the same words but for the names)
+// its file name, or a room bank (the same words as the pictures' titles: eval.pictures.rooms_in_words)
 function evalWhere(evalJob, names = {}) {
   const label = (n) => (names[n] ? `"${names[n]}"` : n.startsWith("map:") ? n : n.split("/").pop());
   const maps = evalMaps(evalJob).map(label);
@@ -951,12 +951,13 @@ function evalWhere(evalJob, names = {}) {
   return evalJob.config.split === "test" ? "held-out test rooms" : "training rooms";
 }
 
-async function replayOf(evalJob, into) {
+// names: the eval job's map names where the caller has fetched them already (mapNames)
+async function replayOf(evalJob, into, names = null) {
   try {
     const data = await api(`/jobs/${evalJob.id}/artifacts/replay.json`);
     data.pictures = await mapPictures(data);
     player(data, into);
-    const where = evalWhere(evalJob, await mapNames(evalJob));
+    const where = evalWhere(evalJob, names || await mapNames(evalJob));
     into.prepend(h("p", { class: "muted", id: "replay-source" }, `Episodes of eval job `,
       h("a", { href: `/ui/jobs/${evalJob.id}` }, short(evalJob.id)), ` on ${where} (seed ${evalJob.config.seed}).`));
   } catch (e) {
@@ -972,9 +973,10 @@ async function replayPage(id) {
   main.replaceChildren(h("h1", {}, "Replay of ", h("a", { class: "mono", href: `/ui/jobs/${job.id}` }, `${job.kind} job ${short(job.id)}`)),
     chooser, stage);
   if (job.kind === "eval") {
-    chooser.append(h("span", { class: "muted" }, `${evalWhere(job, await mapNames(job))}, ${job.config.policy === "trained" ? "trained policy" : job.config.policy}`));
+    const names = await mapNames(job);
+    chooser.append(h("span", { class: "muted" }, `${evalWhere(job, names)}, ${job.config.policy === "trained" ? "trained policy" : job.config.policy}`));
     if (job.status !== "succeeded") { stage.append(h("p", {}, `This eval job is ${job.status}.`)); return; }
-    return replayOf(job, stage);
+    return replayOf(job, stage, names);
   }
   if (job.kind !== "train") { stage.append(h("p", {}, "Only train and eval jobs have episodes to replay.")); return; }
   // a trained policy: replay its newest finished held-out eval, or run one

@@ -70,5 +70,17 @@ def test_map_eval_pictures__name_the_map_not_a_room_bank():
                          grid_size=63, room_size=31.5)  # fmt: skip
     assert rooms_in_words(held_out) == "2 maps (a.yaml, b.yaml)"
     assert rooms_in_words(held_out, "train") == "map map:4f2a"
+    # an uploaded map by the name it was given (Runtime.map_name), as the browser's replay words it;
+    # one the lookup does not know, or fails on, keeps its reference
+    names = {"4f2a": "depot"}.get
+    assert rooms_in_words(held_out, "train", names) == 'map "depot"'
+    several = EnvConfig(rooms="maps", maps={"train": ["map:4f2a", "x/office.yaml", "map:0bad", "map:5e"]},
+                        grid_size=63, room_size=31.5)  # fmt: skip
+    assert rooms_in_words(several, "train", names) == '4 maps ("depot", office.yaml, map:0bad, ...)'
+
+    def broken(_map_id):
+        raise OSError("the store is unreachable")
+
+    assert rooms_in_words(held_out, "train", broken) == "map map:4f2a"
     assert rooms_in_words(EnvConfig()) == "held-out test rooms"
     assert rooms_in_words(EnvConfig(), "train") == "training rooms"
