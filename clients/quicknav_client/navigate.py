@@ -254,11 +254,30 @@ class Navigator:
         """A map-frame point in the planner's grid frame."""
         return x - float(self.corner[0]), y - float(self.corner[1])
 
+    def _on_map(self, what: str, x: float, y: float) -> tuple[float, float]:
+        """A map-frame point in the grid frame; ValueError naming it in the map frame, and the
+        map's extent there, when it lies outside the map's grid."""
+        gx, gy = self.to_grid(x, y)
+        rows, cols = self.walls.shape
+        cell = self.planner.cell
+        if not (0 <= math.floor(gy / cell) < rows and 0 <= math.floor(gx / cell) < cols):
+            x0, y0 = (float(v) for v in self.corner)
+            hint = ("check the localisation (map -> base_link)" if what == "pose" else
+                    "a goal is given in the map frame, as RViz's 2D Goal Pose gives it")  # fmt: skip
+            raise ValueError(f"{what} ({x:.2f}, {y:.2f}) m lies outside the map: its grid spans x"
+                             f" {x0:g} to {x0 + cols * cell:g} m and y {y0:g} to {y0 + rows * cell:g} m"
+                             f" in the map frame (the YAML's origin frame); {hint}")  # fmt: skip
+        return gx, gy
+
     def set_goal(self, goal: Any) -> None:
         """A new goal (x, y) in the map frame: plan to it on the map (marks of the last goal
         dropped) and start a new episode."""
-        gx, gy = self.to_grid(float(goal[0]), float(goal[1]))
+        x, y = float(goal[0]), float(goal[1])
+        gx, gy = self._on_map("goal", x, y)
         planner = self.planner if not self.blocked.any() else GridPlanner(self.walls, *self._planner_args)
+        if not planner.usable[planner.cell_of(gx, gy)]:
+            raise ValueError(f"goal ({x:.2f}, {y:.2f}) m in the map frame: the robot does not fit"
+                             " there on the map (a wall, or closer to one than the robot's radius)")  # fmt: skip
         planner.plan((gx, gy))
         self.planner, self.blocked = planner, np.zeros_like(self.walls)
         self.goal_grid = np.asarray([gx, gy], f32)
@@ -270,7 +289,7 @@ class Navigator:
         if self.goal_grid is None:
             raise ValueError("no goal: call set_goal((x, y)) first")
         x, y, yaw = (float(v) for v in pose)
-        gx, gy = self.to_grid(x, y)
+        gx, gy = self._on_map("pose", x, y)
         r, c = self.planner.cell_of(gx, gy)
         if self.walls[r, c]:
             raise ValueError(f"pose ({x:.2f}, {y:.2f}) m lies in a wall cell of the map: check the"

@@ -115,13 +115,20 @@ def test_navigator__map_frame_poses_and_the_refusals():
     grid_pose = (start[0] - ox, start[1] - oy, 0.3)
     np.testing.assert_allclose(obs[-(2 * env.plan_waypoints + 1):], nav.planner.features(grid_pose))
     assert nav.planner.path_length_m(*grid_pose[:2]) > 5.0
-    with pytest.raises(ValueError, match=r"lies outside the map's grid"):
+    # refusals name the point in the map frame the robot gave, and the map's extent there
+    rows, cols = fit.walls.shape
+    extent = (rf"its grid spans x {ox:g} to {ox + cols * fit.cell_m:g} m and y {oy:g} to"
+              rf" {oy + rows * fit.cell_m:g} m in the map frame")  # fmt: skip
+    with pytest.raises(ValueError, match=rf"pose \({ox - 3.0:.2f}, {oy:.2f}\) m lies outside the map: {extent}"):
         nav.act(np.full(16, 3.0), (ox - 3.0, oy, 0.0))
+    with pytest.raises(ValueError, match=rf"goal \({ox:.2f}, {oy + 100:.2f}\) m lies outside the map: {extent}"):
+        nav.set_goal((ox, oy + 100.0))
     wall_r, wall_c = np.nonzero(fit.walls[1:-1, 1:-1])
     in_wall = ((wall_c[0] + 1.5) * fit.cell_m + ox, (wall_r[0] + 1.5) * fit.cell_m + oy)
     with pytest.raises(ValueError, match="lies in a wall cell of the map"):
         nav.act(np.full(16, 3.0), (*in_wall, 0.0))
-    with pytest.raises(ValueError, match="the robot does not fit there"):
+    with pytest.raises(ValueError, match=rf"goal \({in_wall[0]:.2f}, {in_wall[1]:.2f}\) m in the map frame:"
+                                         " the robot does not fit there"):  # fmt: skip
         nav.set_goal(in_wall)
 
 
