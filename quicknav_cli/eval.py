@@ -80,7 +80,7 @@ def map_layer(say: bool = True):
         for message in fit.warnings():
             warn(message)
 
-    return lambda env, name: env_on_map(env, name, seen=seen)
+    return lambda env, name, reading=None: env_on_map(env, name, seen=seen, reading=reading)
 
 
 def eval_cmd(

@@ -15,7 +15,7 @@ within ``carve_max_steps`` is refused with the ways out.
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Annotated, ClassVar, Literal
+from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal
 
 from pydantic import Field, model_validator
 
@@ -282,6 +282,16 @@ class MapsConfig(StrictModel):
     occupied_thresh: float = Field(0.65, gt=0.0, le=1.0, description="plain images: occupied above")
     free_thresh: float = Field(0.196, ge=0.0, lt=1.0, description="plain images: free below")
     negate: bool = Field(False, description="plain images: white is occupied")
+
+    def load_options(self) -> dict[str, Any]:
+        """How a map file is read (``env.maps.load_map``'s keywords)."""
+        return {"resolution": self.resolution, "occupied_thresh": self.occupied_thresh,
+                "free_thresh": self.free_thresh, "negate": self.negate,
+                "unknown_free": self.unknown == "free"}  # fmt: skip
+
+    def reading(self) -> dict[str, Any]:
+        """The fields that say how a map is read (all but the map lists)."""
+        return self.model_dump(mode="json", exclude={"train", "test"})
 
 
 class EnvConfig(StrictModel):

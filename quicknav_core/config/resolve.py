@@ -388,8 +388,9 @@ def resolve_sweep(request: SweepRequest | Mapping[str, Any]) -> SweepConfig:
 
 
 TrainedEnv = Callable[[str], EnvConfig]
-# how a door lays a named map on the grid for an env: (env, map) -> env on the map
-MapEnv = Callable[[EnvConfig, str], EnvConfig]
+# how a door lays a named map on the grid for an env: (env, map, how the map is read: the fields
+# of env.maps but its lists) -> env on the map
+MapEnv = Callable[[EnvConfig, str, dict[str, Any]], EnvConfig]
 
 
 def resolve_env(fields: Mapping[str, Any], base: EnvConfig | None = None) -> EnvConfig:
@@ -405,14 +406,51 @@ def resolve_env(fields: Mapping[str, Any], base: EnvConfig | None = None) -> Env
     return _validate(EnvConfig, data, where, problems)
 
 
+def _map_keys(req: EvalFields) -> set[str]:
+    """The request's env keys that say how its map is read (``maps.<field>``)."""
+    return {k for k in req.env if k.startswith("maps.")} if req.map is not None else set()
+
+
+def _env_fields(req: EvalFields) -> dict[str, Any]:
+    """The request's env fields but those of its map (``_map_keys``); a whole ``maps`` section (a
+    config file's) keeps how it reads maps, and its map lists become the request's map."""
+    fields = {k: v for k, v in req.env.items() if k not in _map_keys(req)}
+    if req.map is not None and isinstance(fields.get("maps"), Mapping):
+        fields["maps"] = {**fields["maps"], "train": [str(req.map)], "test": None}
+    return fields
+
+
+def _map_reading(req: EvalFields, env: EnvConfig) -> dict[str, Any]:
+    """How the request's map is read: the policy's own ``env.maps`` fields (its maps' scale,
+    thresholds, unknown pixels), then the request's ``env.maps.<field>`` keys (a plain image's
+    ``resolution``). The maps themselves are the request's ``map`` alone."""
+    from quicknav_core.config.env import MapsConfig
+
+    reading = env.maps.reading() if env.maps is not None else {}
+    for key in sorted(_map_keys(req)):
+        field = key.removeprefix("maps.")
+        if field in ("train", "test"):
+            raise ConfigError.single(["env", key], "the map evaluated on is the request's map"
+                                     " (--map): leave maps.train and maps.test unset")  # fmt: skip
+        reading[field] = req.env[key]
+    try:
+        MapsConfig.model_validate({**reading, "train": [str(req.map)]})
+    except ValidationError as e:
+        raise ConfigError([{"loc": ["env", ".".join(["maps", *map(str, i["loc"])])], "msg": i["msg"],
+                            "type": i["type"]} for i in e.errors()], title="EvalRequest") from None  # fmt: skip
+    return reading
+
+
 def _on_map(req: EvalFields, env: EnvConfig, map_env: MapEnv | None) -> EnvConfig:
-    """``env`` on the request's map (``map_env``: the door's fitting, ``eval.map_fit.env_on_map``);
-    the request's own ``env.max_steps`` wins over the map's step limit."""
+    """``env`` on the request's map (``map_env``: the door's fitting, ``eval.map_fit.env_on_map``),
+    read as ``_map_reading`` says; the request's own ``env.max_steps`` wins over the map's step
+    limit."""
     if map_env is None:
         raise ConfigError.single(["map"], "this door cannot lay maps on the grid; set the env's"
                                  " rooms, grid and step limit instead (quicknav eval --map does)")  # fmt: skip
+    reading = _map_reading(req, env)
     try:
-        on_map = map_env(env, str(req.map))
+        on_map = map_env(env, str(req.map), reading)
         if "max_steps" in req.env:
             on_map = resolve_env({"max_steps": req.env["max_steps"]}, on_map)
     except (ConfigError, ValueError, OSError) as e:  # a MapError is a ValueError
@@ -430,7 +468,9 @@ def resolve_eval(
     ``trained_env(source)`` gives the env a trained policy was trained in (the CLI reads the run
     folder, the service the train job's stored config); it raises ``ConfigError`` for an unknown
     source. ``env`` overrides apply on top; they may not change the observation's length.
-    ``map_env(env, map)`` lays the request's ``map`` on the grid at that env's cell size (a door
+    ``map_env(env, map, reading)`` lays the request's ``map`` on the grid at that env's cell size,
+    read as ``reading`` says (``_map_reading``: env keys ``maps.<field>`` such as a plain image's
+    ``maps.resolution`` apply to the map, on the policy's own; a door
     passes ``quicknav_core.eval.map_fit.env_on_map`` with how it reads maps; without it a request
     that names a map is refused).
     """
@@ -442,8 +482,8 @@ def resolve_eval(
         base_env = trained_env(source)
     else:
         base_env = EnvConfig()
-    try:
-        env = resolve_env(req.env, base_env)
+    try:  # with a map, how it is read applies when it is laid (_map_reading)
+        env = resolve_env(_env_fields(req), base_env)
     except ConfigError as e:
         raise ConfigError([{**i, "loc": ["env", *i["loc"]]} for i in e.items], e.title) from None
     if req.map is not None:

@@ -192,9 +192,7 @@ class MapRooms(RoomSource):
         return map_path(name, self.runtime.map_resolver)
 
     def read_options(self) -> dict[str, Any]:
-        m = self.config.maps
-        return {"resolution": m.resolution, "occupied_thresh": m.occupied_thresh,
-                "free_thresh": m.free_thresh, "negate": m.negate, "unknown_free": m.unknown == "free"}  # fmt: skip
+        return self.config.maps.load_options()
 
     def own_key(self, split):
         from quicknav_core.env.maps import is_map_id, map_parts

@@ -49,11 +49,14 @@ class MapFit:
         at the corner of cell (1, 1), inside the outer ring of wall."""
         return self.origin[0] - self.cell_m, self.origin[1] - self.cell_m
 
-    def env_overrides(self, map_name: str) -> dict[str, Any]:
-        """What ``--set`` would change in a policy's env to drive this map."""
+    def env_overrides(self, map_name: str, reading: dict[str, Any] | None = None) -> dict[str, Any]:
+        """What ``--set`` would change in a policy's env to drive this map (and this map alone:
+        held-out maps the policy's env names are dropped); ``reading``: how the map is read
+        (``MapsConfig.reading``)."""
         from quicknav_core.config.env import FloorplanConfig
 
-        return {"rooms": "maps", "maps": {"train": [map_name]}, "grid_size": self.grid_size,
+        maps = {**(reading or {}), "train": [map_name], "test": None}
+        return {"rooms": "maps", "maps": maps, "grid_size": self.grid_size,
                 "room_size": self.room_size, "max_steps": self.max_steps,
                 "floorplan": FloorplanConfig().model_dump(mode="json")}  # fmt: skip
 
@@ -67,9 +70,12 @@ class MapFit:
 
 def fit_map(env: EnvConfig, path: str | Path, read: dict[str, Any] | None = None,
             loaded: OccupancyMap | None = None) -> MapFit:  # fmt: skip
-    """``env``'s policy on the map at ``path`` (MapError when it cannot drive it); ``loaded``: the
-    map already read from ``path`` (not read again)."""
-    m = loaded if loaded is not None else load_map(path, **(read or {}))
+    """``env``'s policy on the map at ``path`` (MapError when it cannot drive it); ``read``:
+    ``load_map``'s keywords (default: as ``env.maps`` reads maps); ``loaded``: the map already
+    read from ``path`` (not read again)."""
+    if read is None:  # as the env reads its maps
+        read = env.maps.load_options() if env.maps is not None else {}
+    m = loaded if loaded is not None else load_map(path, **read)
     cell = env.cell_size
     width_m, height_m = m.size_m
     side = max(math.ceil(width_m / cell - 1e-9), math.ceil(height_m / cell - 1e-9)) + 2
@@ -124,19 +130,25 @@ def longest_path_cells(walls: np.ndarray, cell: float, radius: float) -> float:
 
 def env_on_map(env: EnvConfig, name: str, resolver: Callable[[str], Path] | None = None,
                stored_only: bool = False,
-               seen: Callable[[EnvConfig, MapFit], None] | None = None) -> EnvConfig:  # fmt: skip
+               seen: Callable[[EnvConfig, MapFit], None] | None = None,
+               reading: dict[str, Any] | None = None) -> EnvConfig:  # fmt: skip
     """``env`` driving the map ``name`` (a file, or ``map:<id>`` read through ``resolver``): its
     rooms, the grid that holds it at ``env``'s cell size and the step limit of its longest path
-    (``resolve_eval``'s ``map_env``). ``stored_only``: a server's rule, only uploaded maps.
-    ``seen(env, fit)``: told how the map was laid (the CLI prints it). MapError when it cannot be
-    laid."""
+    (``resolve_eval``'s ``map_env``). ``reading``: how the map is read (``MapsConfig.reading``: a
+    plain image's scale, its thresholds; default ``env``'s own, else the defaults).
+    ``stored_only``: a server's rule, only uploaded maps. ``seen(env, fit)``: told how the map
+    was laid (the CLI prints it). MapError when it cannot be laid."""
     from quicknav_core.config import resolve_env
+    from quicknav_core.config.env import MapsConfig
     from quicknav_core.env.maps import is_map_id, map_path
 
     if stored_only and not is_map_id(name):
         raise MapError("this server reads only maps uploaded to it: name one as 'map:<id>'"
                        " (GET /maps lists them; POST /maps uploads one)")  # fmt: skip
-    fit = fit_map(env, map_path(name, resolver))
+    if reading is None:
+        reading = env.maps.reading() if env.maps is not None else {}
+    maps = MapsConfig.model_validate({**reading, "train": [name]})
+    fit = fit_map(env, map_path(name, resolver), read=maps.load_options())
     if seen is not None:
         seen(env, fit)
-    return resolve_env(fit.env_overrides(name), env)
+    return resolve_env(fit.env_overrides(name, maps.reading()), env)

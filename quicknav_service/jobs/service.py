@@ -159,13 +159,13 @@ class JobsService:
         config = src.config or src.request.get("config")  # jobs stored before configs were
         return TrainConfig.model_validate(config).env
 
-    def map_env(self, env: EnvConfig, name: str) -> EnvConfig:
+    def map_env(self, env: EnvConfig, name: str, reading: dict[str, Any] | None = None) -> EnvConfig:
         """``env`` on a map an eval names (``map``): an uploaded one, read from this server's
-        maps; its grid and step limit at the policy's cell size."""
+        maps (as ``reading`` says); its grid and step limit at the policy's cell size."""
         from quicknav_core.eval.map_fit import env_on_map
 
         resolver = self.runtime.map_resolver if self.runtime is not None else None
-        return env_on_map(env, name, resolver, stored_only=self.limits.stored_maps_only)
+        return env_on_map(env, name, resolver, stored_only=self.limits.stored_maps_only, reading=reading)
 
     def submit_eval(self, body: EvalJobCreate, key: str | None = None) -> Job:
         """Resolve an eval request (a short id names the job by its full one), queue it."""

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -172,6 +173,44 @@ def test_eval_map__lies_over_a_config_env_and_under_set(tmp_path):
     env = json.loads(r.stdout)["env"]
     fine = fit_map(EnvConfig(room_size=4.0, grid_size=16), OFFICE)  # 0.25 m cells
     assert env["grid_size"] == fine.grid_size > 64 and env["room_size"] == pytest.approx(fine.room_size)
+
+
+def test_eval_map__a_plain_image_read_at_the_scale_set_and_only_the_map_named(tmp_path):
+    """`quicknav eval --map IMAGE --set maps.resolution=...`: a plain image's scale (and how its
+    pixels read) is set with the map, as the error asking for it says; a policy trained on maps
+    with held-out ones is evaluated on the map named, never on its own held-out maps; the map's
+    lists are the request's map alone, and a bad reading field is named."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from quicknav_cli.main import app
+    from quicknav_core.env.maps import load_map
+
+    image = tmp_path / "office.pgm"
+    image.write_bytes((Path(OFFICE).parent / "office.pgm").read_bytes())
+    run = lambda *a: CliRunner().invoke(app, ["eval", "--policy", "oracle", *a])  # noqa: E731
+    asked = run("--map", str(image), "--print-config")
+    assert asked.exit_code == 2 and "set maps.resolution (metres per pixel)" in asked.output, asked.output
+    r = run("--map", str(image), "--set", "maps.resolution=0.05", "--print-config")
+    assert r.exit_code == 0, r.output
+    env = json.loads(r.stdout)["env"]
+    assert env["maps"]["train"] == [str(image)] and env["maps"]["resolution"] == 0.05, env["maps"]
+    # laid as the map_server pair with the same scale is: the same grid
+    assert env["grid_size"] == fit_map(EnvConfig(), OFFICE).grid_size, env["grid_size"]
+    assert load_map(image, resolution=0.05).blocked.shape == load_map(OFFICE).blocked.shape
+    # a policy's env on maps with held-out ones: only the map named, read as the policy reads maps
+    held_out = {**PLAN, "rooms": "maps", "maps": {"train": [OFFICE], "test": ["elsewhere.yaml"],
+                                                 "unknown": "free"}}  # fmt: skip
+    (tmp_path / "env.json").write_text(json.dumps(held_out))
+    r = run("--config", str(tmp_path / "env.json"), "--map", OFFICE, "--print-config")
+    assert r.exit_code == 0, r.output
+    maps = json.loads(r.stdout)["env"]["maps"]
+    assert maps["train"] == [OFFICE] and maps["test"] is None and maps["unknown"] == "free", maps
+    bad = run("--map", str(image), "--set", "maps.resolution=-1")
+    assert bad.exit_code == 2 and "env.maps.resolution: Input should be greater than 0" in bad.output, bad.output
+    both = run("--map", str(image), "--set", "maps.test=[a.yaml]")
+    assert both.exit_code == 2 and "env.maps.test: the map evaluated on is the request's map" in both.output
 
 
 class Pursuit(StandIn):
