@@ -147,3 +147,15 @@ def test_export__imports_only_the_converters_plugins_for_flax_and_jax():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.split() == ["True", "True", "False"], out.stdout
+
+
+def test_export__a_map_for_the_robot_is_its_map_server_yaml(tmp_path):
+    """`export --map` takes the map_server .yaml: its origin is the robot's map frame, which a
+    picture alone lacks. Refused before the run is read, naming the map and what to give."""
+    from quicknav_core.env.maps import MapError
+    from quicknav_core.export import export_run
+
+    with pytest.raises(MapError, match=r"plan\.png: export --map takes the map_server \.yaml the robot"
+                                       r" localises in.*write one naming the picture"):  # fmt: skip
+        export_run(tmp_path / "no-run", tmp_path / "out", map_path=tmp_path / "plan.png")
+    assert not (tmp_path / "out").exists()
