@@ -203,6 +203,10 @@ class RolloutClient:
             raise ValueError(f"split={split!r}: allowed values are 'train' and 'test'")
         start = pb.Start(num_envs=num_envs, seed=seed, split=SPLITS[split], groups=groups)
         if isinstance(config, str):
+            if not config.lstrip().startswith("{"):  # a preset's name, a file's path
+                raise ValueError(f"config={config[:60]!r}: an EnvConfig as a dict of fields or the"
+                                 " text of its JSON object; a preset's env is the \"env\" of"
+                                 " `quicknav train --preset NAME --print-config`")  # fmt: skip
             start.config_json = config
         elif config:
             fields = struct_pb2.Struct()

@@ -471,3 +471,16 @@ def test_gym__remote_vector_env_async_send_recv(server):
     with pytest.raises(ValueError, match="one group's ids"):
         env.send(np.zeros((N, 2), np.float32), np.arange(1, N + 1))
     env.close()
+
+
+def test_rollout_client__a_config_string_that_is_no_json_object_is_refused_before_sending():
+    """``config`` as a string is an EnvConfig's JSON text; a preset's name or a file's path is
+    refused in the client, saying what it takes (no server is needed to say so)."""
+    client = RolloutClient("127.0.0.1:9")  # nothing listens: nothing is sent
+    try:
+        for wrong in ("building", "env.json"):
+            with pytest.raises(ValueError, match=rf"config='{wrong}': an EnvConfig as a dict of fields or the"
+                                                 " text of its JSON object.*--print-config"):  # fmt: skip
+                client.start(num_envs=2, config=wrong)
+    finally:
+        client.close()
