@@ -181,10 +181,12 @@ def test_browser__a_building_policy_evaluated_on_an_uploaded_map_replays_its_pla
     # the map at the policy's 0.5 m cells, the policy's own sensors and unmapped obstacles
     assert env["maps"]["train"] == [m["ref"]] and env["grid_size"] == m["suggested_env"]["grid_size"], env
     assert env["observe_plan"] and env["obstacles"]["static"] == 6 and env["obstacles"]["moving"] == 3, env
-    # the train job's list of evaluations names the map
+    # the train job's list of evaluations names the map as it was uploaded (quoted, as the
+    # replay and the pictures name it)
     page.goto(f"{server}/ui/jobs/{job_id}")
     page.wait_for_selector(f'#evals tr[data-id="{eval_id}"]')
-    assert "map " in page.inner_text(f'#evals tr[data-id="{eval_id}"]')
+    row = page.inner_text(f'#evals tr[data-id="{eval_id}"]')
+    assert 'map "building room"' in row, row
 
     page.click("#replay-link")
     canvas = page.locator("#replay-canvas")

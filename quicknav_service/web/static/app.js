@@ -392,14 +392,15 @@ async function evalsOf(job) {
   return data.filter((e) => e.config && e.config.source === job.id);
 }
 
-/** "map NAME" for an eval job that drove a map its policy did not train on (an uploaded map by
-    its name in ``maps``, a file by its name), else null. */
+/** 'map "NAME"' for an eval job that drove a map its policy did not train on (an uploaded map by
+    its name in ``maps``, quoted as the replay and the pictures quote it; a file by its name), else
+    null. */
 function mapOf(e, job, maps) {
   const env = e.config && e.config.env, own = job.config && job.config.env;
   if (!env || env.rooms !== "maps" || !env.maps) return null;
   const names = (env.maps.test && env.maps.test.length ? env.maps.test : env.maps.train) || [];
   const same = own && own.rooms === "maps" && JSON.stringify(own.maps) === JSON.stringify(env.maps);
-  const shown = (n) => { const m = maps.find((x) => x.ref === n); return m ? m.name : n.split("/").pop(); };
+  const shown = (n) => { const m = maps.find((x) => x.ref === n); return m ? `"${m.name}"` : n.split("/").pop(); };
   return same ? null : `map ${names.map(shown).join(", ")}`;
 }
 
