@@ -92,11 +92,19 @@ def resample(scan: Any, beam_angles: np.ndarray, fov_deg: float, max_range: floa
     if blind.any():
         # a beam the scanner cannot see is not "no return": that would read as open space
         seen = np.degrees(angles)
+        sweep = math.degrees(abs(angles[-1] - angles[0]))  # first to last reading, as a datasheet says
+        if math.degrees(span) + 1e-6 >= fov_deg:  # wide enough, pointing elsewhere: a frame, not a scanner
+            centre = (math.degrees(start + span / 2.0) + 180.0) % 360.0 - 180.0
+            what = (f" The scan sweeps {sweep:.0f} degrees, as wide as the policy's {fov_deg:g}, but"
+                    f" centred at {centre:.0f} degrees, not on the robot's heading: give it in the"
+                    " robot's frame (base_link, x forward), or rotate angle_min by the scanner's yaw")  # fmt: skip
+        else:
+            what = (f" The policy was trained for a {fov_deg:g}-degree lidar: train one for this"
+                    f" scanner (env.lidar_fov_deg={sweep:.0f}, this scan's field of view) or give a"
+                    " scan that covers every beam")  # fmt: skip
         raise ValueError(
             f"scan: covers {seen.min():.0f} to {seen.max():.0f} degrees; {int(blind.sum())} of the"
-            f" policy's {beams} beams (at {_degrees(beam_angles[blind])}) fall outside it. The policy"
-            f" was trained for a {fov_deg:g}-degree lidar: train one for this scanner (env.lidar_fov_deg"
-            f" = the scanner's field of view, e.g. 270) or give a scan that covers every beam")
+            f" policy's {beams} beams (at {_degrees(beam_angles[blind])}) fall outside it.{what}")
     inside = sector & valid[None, :]
     # not the shortest return of the sector: that would show the policy every beam shortened
     # towards its neighbours' walls, which it never saw in training (the demo policy driven from a
@@ -133,13 +141,14 @@ class Observer:
 
     def __call__(self, scan: Any, pose: Any, goal: Any = None, plan: Any = None) -> np.ndarray:
         """The policy's observation vector (float32) for a scan, a pose (x, y, theta in the frame
-        the goal is in) and a goal; ``plan``: the plan's features (``Planner.features``)."""
+        the goal is in) and a goal; ``plan``: the plan's features (``GridPlanner.features``)."""
         x, y, theta = (float(v) for v in pose)
         if self.observe_goal and goal is None:
             raise ValueError("goal: this policy observes its goal; give goal=(x, y) in metres")
         if self.observe_plan and plan is None:
-            raise ValueError("plan: this policy follows a global plan; give plan= the features of"
-                             " quicknav_client.navigate.Planner (or drive it with Navigator)")  # fmt: skip
+            raise ValueError("plan: this policy follows a global plan; give plan= the plan's features"
+                             " (quicknav_client.navigate.GridPlanner.features), or drive it with"
+                             " quicknav_client.navigate.Navigator, which plans on the exported map")  # fmt: skip
         b = self.beam_angles.size
         ranges = resample(scan, self.beam_angles, self.fov_deg, self.max_range)
         wall = np.isfinite(ranges) & (ranges <= self.max_range)

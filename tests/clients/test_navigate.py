@@ -107,6 +107,14 @@ def test_navigator__map_frame_poses_and_the_refusals():
     goal = ((free_c[-1] + 0.5) * fit.cell_m + ox, (free_r[-1] + 0.5) * fit.cell_m + oy)
     with pytest.raises(ValueError, match="no goal: call set_goal"):
         nav.act(np.full(16, 3.0), (*start, 0.0))
+    # the policy alone, without its plan, names what gives it (names the SDK has)
+    import quicknav_client.navigate as navigate
+
+    with pytest.raises(ValueError, match=r"give plan= the plan's features \(quicknav_client\.navigate\."
+                                         r"GridPlanner\.features\), or drive it with quicknav_client\."
+                                         r"navigate\.Navigator"):  # fmt: skip
+        nav.policy.observer(np.full(16, 3.0), (*start, 0.0))
+    assert callable(navigate.GridPlanner.features) and callable(navigate.Navigator)
     nav.set_goal(goal)
     assert nav.policy.resets == 1
     left, _ = nav.act(np.full(16, 3.0), (*start, 0.0))

@@ -103,9 +103,18 @@ def test_resample__the_valid_return_closest_to_each_beams_direction():
     hokuyo = LaserScan(angle_min=math.radians(-135), angle_increment=math.radians(0.25),
                        ranges=np.full(1081, 4.0), range_min=0.05, range_max=30.0)  # fmt: skip
     with pytest.raises(ValueError, match=r"covers -135 to 135 degrees; 1 of the policy's 4 beams \(at 180"
-                                         r" degrees\).*trained for a 360-degree lidar.*lidar_fov_deg"):
+                                         r" degrees\).*trained for a 360-degree lidar.*"
+                                         r"lidar_fov_deg=270, this scan's field of view"):  # fmt: skip
         resample(hokuyo, angles, 360.0, 10.0)
     np.testing.assert_allclose(resample(hokuyo, beam_angles(4, 270.0), 270.0, 10.0), [4.0] * 4)
+    # as wide as the policy's 270 degrees but centred behind the robot (the scanner's frame, not
+    # base_link): said so, rather than asking for another scanner
+    backwards = LaserScan(angle_min=math.radians(45), angle_increment=math.radians(0.25),
+                          ranges=np.full(1081, 4.0), range_min=0.05, range_max=30.0)  # fmt: skip
+    with pytest.raises(ValueError, match=r"sweeps 270 degrees, as wide as the policy's 270, but centred at"
+                                         r" -180 degrees, not on the robot's heading: give it in the"
+                                         r" robot's frame"):  # fmt: skip
+        resample(backwards, beam_angles(8, 270.0), 270.0, 10.0)
     with pytest.raises(ValueError, match="3 ranges given as an array; the policy has 4 beams"):
         resample(np.ones(3), angles, 360.0, 10.0)
     with pytest.raises(ValueError, match="needs angle_min, angle_increment and ranges"):
