@@ -22,7 +22,7 @@ from quicknav_core.env.plan import shortest_path_length
 from quicknav_core.eval.agents import Agent
 from quicknav_core.runtime import Runtime, runtime_or_new
 
-__all__ = ["PLAN_KEPT", "Episodes", "EvalStopped", "episode_plan", "replay_data", "run_episodes"]
+__all__ = ["PLAN_KEPT", "Episodes", "EvalStopped", "episode_plan", "outcome", "replay_data", "run_episodes"]
 
 # the episodes whose plan field an evaluation keeps for its pictures (trajectories.png draws 9;
 # the GIF and the replay the first ``gif_episodes``), at most a batch
@@ -269,6 +269,16 @@ def _cell_of(xy, cell: float, g: int) -> np.ndarray:
     return np.clip(np.floor(np.asarray(xy, np.float64)[::-1] / cell).astype(np.int64), 0, g - 1)
 
 
+def outcome(ep: Episodes, i: int, config: EnvConfig) -> str:
+    """How episode ``i`` ended, in words: reached, collided (when a collision ends an episode) or
+    timed out (the pictures' titles and the browser's replay say it so)."""
+    if ep.success[i]:
+        return "reached"
+    if config.end_on_collision and ep.collisions[i] > 0 and ep.steps[i] < config.max_steps:
+        return "collided"
+    return "timed out"
+
+
 def replay_data(ep: Episodes, config: EnvConfig, agent_name: str, runtime: Runtime | None = None
                 ) -> dict[str, Any]:  # fmt: skip
     """The picture episodes step by step, for the browser's replay (``replay.json``): walls as
@@ -282,6 +292,7 @@ def replay_data(ep: Episodes, config: EnvConfig, agent_name: str, runtime: Runti
         episodes.append({
             "index": i,
             "success": bool(ep.success[i]),
+            "outcome": outcome(ep, i, config),
             "steps": int(ep.steps[i]),
             "return": round(float(ep.returns[i]), 4),
             "walls": ["".join("#" if w else "." for w in row) for row in walls],

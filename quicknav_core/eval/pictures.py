@@ -16,7 +16,7 @@ import numpy as np
 
 from quicknav_core.config import EnvConfig
 from quicknav_core.eval.aggregate import performance_profile
-from quicknav_core.eval.episodes import Episodes, episode_plan
+from quicknav_core.eval.episodes import Episodes, episode_plan, outcome
 from quicknav_core.layout import EVAL
 
 __all__ = ["draw_all", "draw_difficulty", "draw_gif", "draw_profiles", "draw_robustness", "draw_trajectories",
@@ -146,16 +146,6 @@ def draw_robustness(rows: list[dict[str, Any]], path: Path, title: str = "") -> 
     fig.savefig(path, dpi=100)
     plt.close(fig)
     return path
-
-
-def outcome(ep: Episodes, i: int, config: EnvConfig) -> str:
-    """How episode ``i`` ended, in words: reached, collided (when a collision ends an episode) or
-    timed out."""
-    if ep.success[i]:
-        return "reached"
-    if config.end_on_collision and ep.collisions[i] > 0 and ep.steps[i] < config.max_steps:
-        return "collided"
-    return "timed out"
 
 
 def draw_trajectories(ep: Episodes, config: EnvConfig, path: Path, title: str = "",

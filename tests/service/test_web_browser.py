@@ -338,7 +338,7 @@ def success_in_table(page) -> float:
 
 
 def test_browser__replay_words_name_an_uploaded_map_by_its_name(server, page):
-    """Where a replay's episodes were, in words (``evalWhere``): an uploaded map by the name it was
+    """Where a replay's episodes were, and how each ended, in words (``evalWhere``): an uploaded map by the name it was
     given (``mapNames`` asks the API), a map file by its file name, a room bank by its split; a
     map the API no longer knows keeps its reference."""
     page.goto(server + "/ui/")
@@ -356,6 +356,16 @@ def test_browser__replay_words_name_an_uploaded_map_by_its_name(server, page):
     }""")  # fmt: skip
     assert words == ['map "test room"', 'map "annex"', '2 maps (office.yaml, "test room")', 'the map "depot"',
                      "held-out test rooms", "map map:0123456789abcdef"], words  # fmt: skip
+    # how each episode ended, in the pictures' words (replay.json's outcome; an older file's
+    # episodes say reached or not)
+    ends = page.evaluate("""() => [
+      episodeEnd({ outcome: "reached", success: true, steps: 40 }),
+      episodeEnd({ outcome: "collided", success: false, steps: 42 }),
+      episodeEnd({ outcome: "timed out", success: false, steps: 600 }),
+      episodeEnd({ success: false, steps: 7 }),
+    ]""")  # fmt: skip
+    assert ends == ["reached the goal in 40 steps", "collided after 42 steps", "timed out after 600 steps",
+                    "failed after 7 steps"], ends  # fmt: skip
 
 
 def test_browser__journey_from_the_trained_job_runs_an_eval_reads_its_metrics_and_replays(

@@ -862,10 +862,20 @@ function drawFrame(canvas, data, ep, t) {
   ctx.lineTo(px(x + 1.5 * data.robot_radius * Math.cos(th)), py(y + 1.5 * data.robot_radius * Math.sin(th))); ctx.stroke();
 }
 
+// how an episode ended, as the pictures' titles say it (eval.episodes.outcome; a replay.json
+// written before it carried the outcome says reached or not)
+function episodeEnd(ep) {
+  const how = ep.outcome || (ep.success ? "reached" : "failed");
+  if (how === "reached") return `reached the goal in ${ep.steps} steps`;
+  if (how === "collided") return `collided after ${ep.steps} steps`;
+  if (how === "timed out") return `timed out after ${ep.steps} steps`;
+  return `${how} after ${ep.steps} steps`;
+}
+
 function player(data, into) {
   const canvas = h("canvas", { width: CANVAS_PX, height: CANVAS_PX, id: "replay-canvas" });
   const epSel = h("select", { id: "episode" }, data.episodes.map((ep, i) => h("option", { value: i },
-    `episode ${ep.index}: ${ep.success ? "reached the goal" : "failed"} in ${ep.steps} steps`)));
+    `episode ${ep.index + 1}: ${episodeEnd(ep)}`)));
   const slider = h("input", { type: "range", min: 0, max: 0, value: 0, id: "step-slider", "aria-label": "step" });
   const label = h("span", { class: "mono", id: "step-label" });
   const play = h("button", { id: "play", class: "primary" }, "Pause");

@@ -152,6 +152,7 @@ def test_eval__replay_json_holds_the_picture_episodes_step_by_step(baselines, tm
     for i, e in enumerate(replay["episodes"]):
         n = oracle["per_episode"]["steps"][i] + 1
         assert e["success"] == oracle["per_episode"]["success"][i] and len(e["x"]) == n
+        assert e["outcome"] == ("reached" if e["success"] else "timed out"), e["outcome"]  # no end on collision
         assert e["walls"] == ["".join("#" if w else "." for w in row) for row in ep.walls[i]]
         np.testing.assert_allclose(np.c_[e["x"], e["y"]], ep.trajectories[i, :n], atol=6e-4)
         # the lidar of every 7th frame, cast again by the NumPy twin from the stored pose

@@ -141,7 +141,7 @@ def test_pictures__an_episode_a_collision_ended_is_called_collided_not_timed_out
     from types import SimpleNamespace
 
     from quicknav_core.config import EnvConfig
-    from quicknav_core.eval.pictures import outcome
+    from quicknav_core.eval.episodes import outcome
 
     ep = SimpleNamespace(success=np.array([True, False, False, False]),
                          collisions=np.array([0, 1, 0, 2]), steps=np.array([40, 17, 300, 300]))  # fmt: skip
