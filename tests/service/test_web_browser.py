@@ -315,7 +315,7 @@ def test_browser__replay_draws_the_plan_boxes_and_people_where_they_are(server, 
 
 def test_browser__a_wide_maps_replay_canvas_takes_the_maps_shape(server, page):
     """A map's replay canvas shows the map's own extent in its own shape (520 px along its longer
-    side), as the GIFs do (``render.map_view``; the slow maps browser test holds the two equal on
+    side; more for a long narrow map, whose short side keeps 200 px), as the GIFs do (``render.map_view``; the slow maps browser test holds the two equal on
     an uploaded map): a map 4 m wide and 2 m high in an 8-cell grid of 0.5 m cells."""
     from quicknav_core.env.render import map_view
 
@@ -329,6 +329,15 @@ def test_browser__a_wide_maps_replay_canvas_takes_the_maps_shape(server, page):
               floor: at(2.0, 1.2), wall: at(2.0, 1.8)};""")  # fmt: skip
     assert seen["size"] == [520, 260] and seen["view"] == "0,0,4,2", seen
     assert seen["floor"] == [244, 241, 234] and seen["wall"] == [59, 59, 59], seen
+    # a corridor 1 m wide and 6 m long (2 m x 7 m with its wall ring): the longer side grows so the
+    # short one keeps 200 px (at most twice 520): 100 px a metre, 200 x 700, not 149 x 520
+    tall = ["################"] + ["#..#############"] * 12 + ["################"] * 3
+    corridor = {**episode, "walls": tall, "goal": [0.75, 5.5], "x": [0.75, 0.75], "y": [0.75, 0.8]}
+    assert map_view(np.array([[c == "#" for c in row] for row in tall]), 8.0) == (0.0, 2.0, 0.0, 7.0)
+    seen = in_a_player(server, page, corridor, 8.0, """
+      return {size: [canvas.width, canvas.height], view: canvas.dataset.view, floor: at(0.75, 3.0)};""")
+    assert seen["size"] == [200, 700] and seen["view"] == "0,0,2,7", seen
+    assert seen["floor"] == [244, 241, 234], seen
 
 
 def success_in_table(page) -> float:

@@ -774,7 +774,15 @@ const PLAN_COLOUR = "#17becf", BOX_COLOUR = "#8c564b", PERSON_COLOUR = "#9467bd"
 // what the canvas shows of an episode's room, {x0, y0, w, h} in metres: a map's own extent (its
 // free cells and the ring of wall around them), as the GIFs show it (render.map_view): a map lies
 // in the smallest square grid that holds it, the rest wall. The canvas takes the view's shape
-const CANVAS_PX = 520; // the longer side
+const CANVAS_PX = 520; // the longer side (of most views: canvasScale)
+// a long narrow map (a corridor) gets a longer side, up to twice, so its short side keeps at least
+// this many pixels where it can (a 5 m x 30 m corridor: 168 x 1040 rather than 87 x 520)
+const CANVAS_MIN_SIDE_PX = 200;
+
+function canvasScale(view) {
+  const long = Math.max(view.w, view.h), short = Math.min(view.w, view.h);
+  return Math.max(CANVAS_PX / long, Math.min(CANVAS_MIN_SIDE_PX / short, 2 * CANVAS_PX / long));
+}
 
 function roomView(data, ep) {
   if (ep.view) return ep.view;
@@ -800,7 +808,7 @@ function roomView(data, ep) {
 function drawFrame(canvas, data, ep, t) {
   const ctx = canvas.getContext("2d");
   const view = roomView(data, ep);
-  const scale = CANVAS_PX / Math.max(view.w, view.h); // pixels per metre
+  const scale = canvasScale(view); // pixels per metre
   const width = Math.round(view.w * scale), height = Math.round(view.h * scale);
   if (canvas.width !== width || canvas.height !== height) { canvas.width = width; canvas.height = height; }
   canvas.dataset.view = `${view.x0},${view.y0},${view.w},${view.h}`;
