@@ -124,7 +124,8 @@ def demo(
     set_: EnvSetOpt = None,
     on_map: Annotated[
         Path | None,
-        typer.Option("--map", help="On this map (a map_server .yaml), laid as quicknav eval --map"
+        typer.Option("--map", help="On this map (a map_server .yaml, or a .png/.pgm with --set"
+                     " maps.resolution=M_PER_PX), laid as quicknav eval --map"
                      " lays it: the grid follows the map at the env's cell size (room_size /"
                      " grid_size), the step limit its longest path."),
     ] = None,

@@ -120,10 +120,10 @@ def eval_cmd(
     ] = False,
     on_map: Annotated[
         Path | None,
-        typer.Option("--map", help="Evaluate on this map (a map_server .yaml): the grid follows"
-                     " the map at the policy's cell size and the step limit its longest path"
-                     " (--set wins over both, but --set grid_size/room_size give the cell size"
-                     " the map is laid at)."),
+        typer.Option("--map", help="Evaluate on this map (a map_server .yaml, or a .png/.pgm with"
+                     " --set maps.resolution=M_PER_PX): the grid follows the map at the policy's"
+                     " cell size and the step limit its longest path (--set wins over both, but"
+                     " --set grid_size/room_size give the cell size the map is laid at)."),
     ] = None,
     print_only: PrintConfigOpt = False,
 ) -> None:
