@@ -20,7 +20,8 @@ from quicknav_core.eval.episodes import Episodes, episode_plan, outcome
 from quicknav_core.layout import EVAL
 
 __all__ = ["draw_all", "draw_difficulty", "draw_gif", "draw_profiles", "draw_robustness", "draw_trajectories",
-           "episode_snapshot", "obstacles_at", "picture_warning", "rooms_in_words"]  # fmt: skip
+           "episode_snapshot", "obstacles_at", "picture_warning", "rooms_in_words",
+           "trajectory_panels"]  # fmt: skip
 
 
 def picture_warning(name: str, error: BaseException) -> str:
@@ -150,8 +151,9 @@ def draw_robustness(rows: list[dict[str, Any]], path: Path, title: str = "") -> 
 
 def draw_trajectories(ep: Episodes, config: EnvConfig, path: Path, title: str = "",
                       where: str = "held-out test rooms") -> Path:  # fmt: skip
-    """3x3 grid of episodes with their trajectories (the paper's trajectory figures); ``where``:
-    the rooms they ran in (``rooms_in_words``)."""
+    """Nine episodes with their trajectories (the paper's trajectory figures), 3 x 3, or in a row
+    or a column for a long narrow map (``trajectory_panels``); ``where``: the rooms they ran in
+    (``rooms_in_words``)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -160,12 +162,14 @@ def draw_trajectories(ep: Episodes, config: EnvConfig, path: Path, title: str = 
     from quicknav_core.env import render
 
     count = min(9, ep.success.size)
-    fig, axes = plt.subplots(3, 3, figsize=(9, 9.4))
+    views = [render.room_view(ep.walls[i], config) for i in range(count)]
+    rows, cols, figsize = trajectory_panels([(x1 - x0, y1 - y0) for x0, x1, y0, y1 in views])
+    fig, axes = plt.subplots(rows, cols, figsize=figsize, squeeze=False)
     for i, ax in enumerate(axes.flat):
         if i >= count:
             ax.axis("off")
             continue
-        render.draw_room(ax, ep.walls[i], config.room_size, render.room_view(ep.walls[i], config))
+        render.draw_room(ax, ep.walls[i], config.room_size, views[i])
         if (plan := episode_plan(ep, config, i)) is not None:  # the global plan, dashed
             ax.plot(plan[:, 0], plan[:, 1], color=render.PLAN_COLOUR, lw=1.2, ls=(0, (3, 2)))
         if ep.obstacles is not None:  # boxes where they stood; people where they started, and
@@ -184,12 +188,29 @@ def draw_trajectories(ep: Episodes, config: EnvConfig, path: Path, title: str = 
         ax.plot(*traj[0], "o", color=render.PATH_COLOUR, ms=6)
         ax.add_patch(plt.Circle(ep.goals[i], config.goal_radius, color=render.GOAL_COLOUR, alpha=0.4))
         ax.plot(*ep.goals[i], "*", color=render.GOAL_COLOUR, ms=12)
-        ax.set_title(f"episode {i + 1}: {outcome(ep, i, config)}, {ep.steps[i]} steps", fontsize=9)
+        narrow = "\n" if rows == 1 and cols > 1 else " "  # a row of tall maps: titles on two lines
+        ax.set_title(f"episode {i + 1}:{narrow}{outcome(ep, i, config)}, {ep.steps[i]} steps", fontsize=9)
     fig.suptitle(f"{title}: {where}" if title else where, fontsize=11)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
     return path
+
+
+def trajectory_panels(sizes: list[tuple[float, float]]) -> tuple[int, int, tuple[float, float]]:
+    """(rows, columns, figure size in inches) for ``draw_trajectories``' panels of views of these
+    (width, height) metres: a 3 x 3 grid, but a row of panels when every view is at least twice
+    as tall as wide (a corridor's map) and a column when every one is at least twice as wide, so
+    the map fills its panel instead of a strip of a square."""
+    count = max(len(sizes), 1)
+    aspects = [h / w for w, h in sizes if w > 0 and h > 0] or [1.0]
+    if min(aspects) >= 2.0:  # tall: side by side, 8.4 in high
+        width = max(8.4 / max(aspects), 1.1)
+        return 1, count, (max(count * (width + 0.35) + 0.4, 4.0), 9.6)
+    if max(aspects) <= 0.5:  # wide: one above the other, 9 in wide
+        height = max(9.0 * max(aspects), 1.0)
+        return count, 1, (9.4, count * (height + 0.45) + 0.7)
+    return 3, 3, (9.0, 9.4)
 
 
 def episode_snapshot(ep: Episodes, config: EnvConfig, i: int, t: int,

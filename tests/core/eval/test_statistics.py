@@ -149,3 +149,18 @@ def test_pictures__an_episode_a_collision_ended_is_called_collided_not_timed_out
     assert [outcome(ep, i, ends) for i in range(4)] == ["reached", "collided", "timed out", "timed out"]
     slides = EnvConfig()  # the paper's env: a collision never ends an episode
     assert [outcome(ep, i, slides) for i in range(4)] == ["reached", "timed out", "timed out", "timed out"]
+
+
+def test_pictures__a_corridors_trajectories_side_by_side_not_strips_of_a_square():
+    """``draw_trajectories``' panels follow the maps' shape: nine views of a 2 m x 16 m corridor
+    in a row of tall panels, of a 16 m x 2 m one in a column of wide panels, square-ish rooms
+    (or a mix) in the 3 x 3 grid."""
+    from quicknav_core.eval.pictures import trajectory_panels
+
+    rows, cols, (w, h) = trajectory_panels([(2.0, 16.0)] * 9)
+    assert (rows, cols) == (1, 9) and h == 9.6 and 9 * 1.1 < w < 18, (w, h)
+    rows, cols, (w, h) = trajectory_panels([(16.0, 2.0)] * 9)
+    assert (rows, cols) == (9, 1) and w == 9.4 and h > 9 * 1.1, (w, h)
+    assert trajectory_panels([(8.0, 8.0)] * 9) == (3, 3, (9.0, 9.4))
+    assert trajectory_panels([(2.0, 16.0), (8.0, 8.0)])[:2] == (3, 3)  # one map not narrow: the grid
+    assert trajectory_panels([(2.0, 16.0)] * 3)[:2] == (1, 3)  # as many panels as episodes shown
