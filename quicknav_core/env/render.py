@@ -139,11 +139,13 @@ class FrameDrawer:
     _FULL = (0.02, 0.02, 0.96, 0.96)
     _TITLED = (0.02, 0.02, 0.96, 0.90)
 
-    def __init__(self, config: EnvConfig, size_px: int = 360) -> None:
+    def __init__(self, config: EnvConfig, size_px: int | tuple[int, int] = 360) -> None:
+        """``size_px``: a square frame's side, or (width, height) (``gif_frame_size``)."""
         from matplotlib.collections import LineCollection
 
         self.config = config
-        self.fig = plt.figure(figsize=(size_px / 100, size_px / 100), dpi=100)
+        width, height = (size_px, size_px) if isinstance(size_px, int) else size_px
+        self.fig = plt.figure(figsize=(width / 100, height / 100), dpi=100)
         self.ax = ax = self.fig.add_axes(self._FULL)
         ax.set_anchor("N")  # a map wider than tall (room_view) sits under its title
         size, r = config.room_size, config.robot_radius
@@ -318,6 +320,21 @@ def gif_palette(frames: Sequence[np.ndarray]) -> Image.Image:
     strip = np.repeat(named, -(-width // len(named)), axis=0)[:width][None].repeat(4, axis=0)
     stacked = np.concatenate([*sample, strip], axis=0)
     return Image.fromarray(stacked).quantize(colors=255, method=Image.Quantize.FASTOCTREE)
+
+
+def gif_frame_size(views: Sequence[tuple[float, float, float, float]], side_px: int = 320) -> tuple[int, int]:
+    """(width, height) in pixels of the frames that show these views ((x0, x1, y0, y1) metres,
+    ``room_view``): a square of ``side_px``, but for views all at least twice as tall as wide (a
+    corridor's map) a frame 1.75 times as tall and at most as wide, and for views all at least
+    twice as wide a frame 1.75 times as wide (whose blank bottom ``save_gif`` cuts), so the map
+    is drawn larger than a strip of a square."""
+    aspects = [(y1 - y0) / (x1 - x0) for x0, x1, y0, y1 in views if x1 > x0 and y1 > y0] or [1.0]
+    long = round(1.75 * side_px)
+    if min(aspects) >= 2.0:
+        return max(200, min(side_px, round(0.9 * long / max(aspects)) + 40)), long
+    if max(aspects) <= 0.5:
+        return long, long
+    return side_px, side_px
 
 
 def save_gif(frames: Sequence[np.ndarray], path: str | Path, fps: float = 10.0) -> Path:

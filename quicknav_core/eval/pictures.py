@@ -237,12 +237,15 @@ def obstacles_at(ep: Episodes, config: EnvConfig, i: int, t: int) -> dict[str, n
 def draw_gif(
     ep: Episodes, config: EnvConfig, path: Path, title: str = "", max_frames: int = 60
 ) -> Path:
-    """A GIF of the first episodes with lidar rays, one after the other."""
-    from quicknav_core.env.render import FrameDrawer, save_gif
+    """A GIF of the first episodes with lidar rays, one after the other, in frames that follow
+    the maps' shape (``render.gif_frame_size``)."""
+    from quicknav_core.env.render import FrameDrawer, gif_frame_size, room_view, save_gif
 
+    shown = range(ep.gif["theta"].shape[0])
+    size = gif_frame_size([room_view(ep.walls[i], config) for i in shown], 320)
     frames = []
-    with FrameDrawer(config, size_px=320) as drawer:
-        for i in range(ep.gif["theta"].shape[0]):
+    with FrameDrawer(config, size_px=size) as drawer:
+        for i in shown:
             length = int(ep.steps[i]) + 1
             stride = max(1, math.ceil(length / max_frames))
             plan = episode_plan(ep, config, i)

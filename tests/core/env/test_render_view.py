@@ -94,3 +94,28 @@ def test_saved_pictures__cut_the_rows_a_wide_map_leaves_blank_and_keep_a_square_
     # the office is 21.2 m x 13.2 m: the frame keeps its title and the map, and about 2 % below
     width, height = shown["maps"]
     assert width == 320 and 0.6 * 320 < height < 0.8 * 320, shown
+
+
+def test_gif_frames__follow_a_long_narrow_maps_shape():
+    """``gif_frame_size``: a square frame for rooms and maps of any shape up to twice as long as
+    wide; a tall frame (at most as wide as the square) for views all at least twice as tall, a
+    wide one for views all at least twice as wide; and a frame of that size draws the tall map
+    filling its height."""
+    assert render.gif_frame_size([(0.0, 8.0, 0.0, 8.0)], 320) == (320, 320)
+    assert render.gif_frame_size([(0.0, 21.2, 0.0, 13.2)], 320) == (320, 320)  # the office
+    assert render.gif_frame_size([(0.0, 16.0, 0.0, 2.0)] * 3, 320) == (560, 560)  # cut by save_gif
+    width, height = render.gif_frame_size([(0.0, 5.5, 0.0, 31.0)] * 3, 320)  # a corridor
+    assert height == 560 and 200 <= width < 320, (width, height)
+    assert render.gif_frame_size([(0.0, 5.5, 0.0, 31.0), (0.0, 8.0, 0.0, 8.0)], 320) == (320, 320)
+    walls = np.ones((32, 32), dtype=bool)
+    walls[1:31, 1:5] = False  # 2 m x 15 m of floor at 0.5 m cells
+    cfg = EnvConfig(rooms="maps", maps={"train": [str(OFFICE)]}, grid_size=32, room_size=16.0)
+    view = render.room_view(walls, cfg)
+    size = render.gif_frame_size([view], 320)
+    snap = {"walls": walls, "pos": np.array([1.0, 3.0]), "theta": np.float32(0.0), "goal": np.array([1.5, 12.0])}
+    with render.FrameDrawer(cfg, size) as drawer:
+        frame = drawer.draw(snap, title="a corridor")
+    assert frame.shape[:2] == (size[1], size[0])
+    floor = np.array([int(v * 255) for v in to_rgb(render.FREE_COLOUR)])
+    rows = (np.abs(frame.astype(int) - floor).max(axis=2) <= 2).any(axis=1).mean()
+    assert rows > 0.75, rows  # the floor reaches down most of the frame's height
