@@ -314,6 +314,9 @@ def _load_yaml(path: Path, unknown_free: bool) -> OccupancyMap:
     mode = str(doc.get("mode", "trinary"))
     if mode not in ("trinary", "scale"):
         raise MapError(f"{path}: field 'mode' is {shown(mode)}; QuickNav reads 'trinary' and 'scale' maps")
+    if not image.is_file():
+        raise MapError(f"{path}: its image {named!r} is not there ({image}: no such file); a"
+                       " map_server YAML names its image relative to the YAML's folder")  # fmt: skip
     grey, transparent = _read_image(image, mode)
     blocked = occupancy(grey, occ, free, negate, unknown_free, transparent)[::-1]
     return OccupancyMap(str(path), np.ascontiguousarray(blocked), resolution, (origin[0], origin[1]),

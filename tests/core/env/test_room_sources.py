@@ -276,7 +276,7 @@ def test_map__bad_files_are_refused_naming_the_file_and_the_fix(tmp_path):
         "no resolution": (tmp_path / "nores.yaml", b"image: map.pgm\norigin: [0, 0, 0]\n", "'resolution' is missing"),
         "rotated": (tmp_path / "rot.yaml", b"image: map.pgm\nresolution: 0.5\norigin: [0, 0, 0.3]\n", "yaw 0.3"),
         "bad thresholds": (tmp_path / "th.yaml", b"image: map.pgm\nresolution: 0.5\norigin: [0, 0, 0]\nfree_thresh: 0.9\n", "free_thresh"),
-        "missing image": (tmp_path / "noimg.yaml", b"image: nope.pgm\nresolution: 0.5\norigin: [0, 0, 0]\n", "nope.pgm: no such file"),
+        "missing image": (tmp_path / "noimg.yaml", b"image: nope.pgm\nresolution: 0.5\norigin: [0, 0, 0]\n", "noimg.yaml: its image 'nope.pgm' is not there"),
         # hostile files: refused by rule, cheaply, with nothing of the input echoed at length
         "truncated PGM": (tmp_path / "cut.pgm", b"P2\n40 40\n255\n255 255\n", "truncated"),
         "huge header": (tmp_path / "huge.pgm", b"P5\n100000 100000\n255\n" + bytes(64), "more than the 64,000,000"),
