@@ -358,6 +358,10 @@ def test_sdk__upload_list_preview_download_delete(server, tmp_path):
             qn.upload_map(tmp_path / "back" / "map.pgm")
         with pytest.raises(FileNotFoundError, match="no such map file"):
             qn.upload_map(tmp_path / "missing.yaml")
+        (tmp_path / "lost.yaml").write_bytes(yaml_for("lost.pgm"))
+        with pytest.raises(FileNotFoundError, match=r"lost\.yaml names image 'lost\.pgm', which is not"
+                                                    rf" there \({tmp_path}/lost\.pgm: no such file\)"):  # fmt: skip
+            qn.upload_map(tmp_path / "lost.yaml")
         job = qn.train(preset="demo", overrides={**TINY, "env.rooms": "maps", "env.maps.train": [m["ref"]],
                                                  "env.grid_size": 18, "env.room_size": 9.0})  # fmt: skip
         with pytest.raises(Conflict, match=job.id):

@@ -640,7 +640,8 @@ def map_upload(path: str | Path, name: str | None, resolution: float | None, neg
     paths = [path, _yaml_image(path)] if path.suffix.lower() in (".yaml", ".yml") else [path]
     for extra in paths[1:]:
         if not extra.is_file():
-            raise FileNotFoundError(f"{path} names image {extra.name!r}, which is not at {extra}")
+            raise FileNotFoundError(f"{path} names image {extra.name!r}, which is not there"
+                                    f" ({extra.absolute()}: no such file)")  # fmt: skip
     form = {"name": name, "resolution": resolution, "occupied_thresh": occupied_thresh,
             "free_thresh": free_thresh, "negate": None if negate is None else str(bool(negate)).lower()}  # fmt: skip
     return {"files": [("files", (f.name, f.read_bytes())) for f in paths],
