@@ -17,7 +17,7 @@ from typing import Any, Literal, TypeVar
 from pydantic import AliasChoices, BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from quicknav_core.config.base import Flag, Split, StrictModel, exactly_one_of
-from quicknav_core.config.env import EnvConfig
+from quicknav_core.config.env import EnvConfig, MapsConfig
 from quicknav_core.config.errors import ConfigError, error_items, unknown_field_msg
 from quicknav_core.config.eval import EvalConfig
 from quicknav_core.config.overrides import OverrideError, _models, override_data
@@ -424,8 +424,6 @@ def _map_reading(req: EvalFields, env: EnvConfig) -> dict[str, Any]:
     """How the request's map is read: the policy's own ``env.maps`` fields (its maps' scale,
     thresholds, unknown pixels), then the request's ``env.maps.<field>`` keys (a plain image's
     ``resolution``). The maps themselves are the request's ``map`` alone."""
-    from quicknav_core.config.env import MapsConfig
-
     reading = env.maps.reading() if env.maps is not None else {}
     for key in sorted(_map_keys(req)):
         field = key.removeprefix("maps.")

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from quicknav_core.config import EnvConfig
-from quicknav_core.config.env import GRID_SIZE_RANGE
+from quicknav_core.config.env import GRID_SIZE_RANGE, MapsConfig
 from quicknav_core.env.clearance import disc_fits
 from quicknav_core.env.maps import MapError, OccupancyMap, load_map, reachable_only, to_cells
 
@@ -139,7 +139,6 @@ def env_on_map(env: EnvConfig, name: str, resolver: Callable[[str], Path] | None
     ``stored_only``: a server's rule, only uploaded maps. ``seen(env, fit)``: told how the map
     was laid (the CLI prints it). MapError when it cannot be laid."""
     from quicknav_core.config import resolve_env
-    from quicknav_core.config.env import MapsConfig
     from quicknav_core.env.maps import is_map_id, map_path
 
     if stored_only and not is_map_id(name):
