@@ -62,7 +62,7 @@ def export_cmd(
         import jax2onnx  # noqa: F401
     except ImportError:
         fail("exporting needs the export extra: pip install 'quicknav[export]'")
-    from quicknav_core.export import export_run
+    from quicknav_core.export import check_robot_map, export_run
     from quicknav_core.layout import RunFolder
 
     run_dir = RunFolder.of(run).path
@@ -71,6 +71,11 @@ def export_cmd(
     enable_compilation_cache()
     from quicknav_core.env.maps import MapError
 
+    if on_map is not None:
+        try:  # before the minute of tracing is announced
+            check_robot_map(on_map)
+        except MapError as e:
+            fail(str(e))
     # tracing to ONNX and checking the model against the JAX policy takes tens of seconds: say so
     # first (a line, not a spinner, so that a log or a pipe shows it too)
     console.print(f"exporting {run_dir} (tracing the policy to ONNX and checking it against JAX;"

@@ -199,6 +199,18 @@ def _initial_value(value) -> Any:
 
 
 # --------------------------------------------------------------------------- a run folder
+def check_robot_map(map_path: str | Path) -> None:
+    """MapError unless ``map_path`` is a map a robot localises in: a map_server YAML (its origin
+    is the map frame of poses and goals, which a picture alone does not have)."""
+    from quicknav_core.env.maps import YAML_SUFFIXES, MapError
+
+    if Path(map_path).suffix.lower() not in YAML_SUFFIXES:
+        raise MapError(f"{map_path}: export --map takes the map_server .yaml the robot localises in:"
+                       " its origin is the map frame poses and goals are given in, which a picture"
+                       " alone does not have; write one naming the picture (image, resolution,"
+                       " origin, mode), or export the map_server pair the robot uses")  # fmt: skip
+
+
 def export_run(run_dir: Path, out_dir: Path, provenance: dict[str, Any] | None = None,
                map_path: str | Path | None = None) -> dict[str, Any]:
     """Write ``policy.onnx`` and ``policy.json`` of a run folder's last checkpoint into ``out_dir``
@@ -206,14 +218,10 @@ def export_run(run_dir: Path, out_dir: Path, provenance: dict[str, Any] | None =
     The policy is read from the checkpoint without building the run's trainer (``load_policy``).
     ``map_path``: a map the robot drives, written as the policy sees it (``map.npz``, and the
     manifest's ``map``: its frame) for ``quicknav_client.navigate.Navigator``."""
-    from quicknav_core.env.maps import YAML_SUFFIXES, MapError
     from quicknav_core.train.run import load_policy
 
-    if map_path is not None and Path(map_path).suffix.lower() not in YAML_SUFFIXES:
-        raise MapError(f"{map_path}: export --map takes the map_server .yaml the robot localises in:"
-                       " its origin is the map frame poses and goals are given in, which a picture"
-                       " alone does not have; write one naming the picture (image, resolution,"
-                       " origin, mode), or export the map_server pair the robot uses")  # fmt: skip
+    if map_path is not None:
+        check_robot_map(map_path)
     run_dir, out_dir = Path(run_dir), Path(out_dir)
     config, policy, meta = load_policy(run_dir)
     fit = None

@@ -159,3 +159,13 @@ def test_export__a_map_for_the_robot_is_its_map_server_yaml(tmp_path):
                                        r" localises in.*write one naming the picture"):  # fmt: skip
         export_run(tmp_path / "no-run", tmp_path / "out", map_path=tmp_path / "plan.png")
     assert not (tmp_path / "out").exists()
+    # the command says so before it announces a minute of tracing
+    from typer.testing import CliRunner
+
+    from quicknav_cli.main import app
+
+    (tmp_path / "run").mkdir()
+    r = CliRunner().invoke(app, ["export", str(tmp_path / "run"), "--map", str(tmp_path / "plan.png"),
+                                 "--out", str(tmp_path / "out")])  # fmt: skip
+    assert r.exit_code == 2 and "export --map takes the map_server .yaml" in r.output, r.output
+    assert "exporting" not in r.output, r.output
