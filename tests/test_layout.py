@@ -5,6 +5,8 @@
 - the library's modules, and its packages, import each other without cycles (lazy imports count
   too), and so do the service's modules;
 - the library keeps no module-level mutable state (the Runtime holds it);
+- pictures are drawn only in the render and pictures modules, never in the code that computes the
+  numbers they show;
 - the tests start no child process with an output pipe they never read.
 """
 
@@ -100,6 +102,23 @@ def test_env__private_names_stay_inside_env():
             ):
                 offenders += [f"{name}: import {a.name}" for a in node.names if a.name.startswith("_")]
     assert not offenders, offenders
+
+
+# the modules that draw (matplotlib): the env's frames, and the pictures of evaluations, of training
+# and sweeps, and of the env benchmark; deferred_imports only names matplotlib.pyplot to defer it
+DRAWING = {"quicknav_core.env.render", "quicknav_core.eval.pictures", "quicknav_core.train.pictures",
+           "quicknav_core.bench.pictures"}  # fmt: skip
+
+
+def test_library__draws_only_in_its_render_and_pictures_modules():
+    drawing = set()
+    for name, path in {**_modules(LIBRARY), **_modules(ROOT / "quicknav_service")}.items():
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import) else
+                     [node.module or ""] if isinstance(node, ast.ImportFrom) else [])  # fmt: skip
+            if any(n == "matplotlib" or n.startswith("matplotlib.") for n in names):
+                drawing.add(name)
+    assert drawing == DRAWING, f"drawing outside the render/pictures modules: {sorted(drawing - DRAWING)}"
 
 
 def _import_graph() -> dict[str, set[str]]:

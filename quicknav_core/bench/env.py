@@ -395,69 +395,15 @@ def run_bench(cfg: BenchConfig, progress: Callable[[str], None] | None = None) -
 
 
 def write_outputs(report: BenchReport, out_dir: Path) -> dict[str, Path]:
-    """bench.json, bench_time_100k.png (the paper's figure) and bench_batch.png."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    """bench.json, then its pictures (``bench.pictures``): bench_time_100k.png (the paper's figure)
+    and bench_batch.png."""
+    from quicknav_core.bench.pictures import draw_batch, draw_time
 
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {"json": out_dir / "bench.json"}
     paths["json"].write_text(json.dumps(report.to_json(), indent=2))
-    steps = report.config["steps"]
-    grids = report.config["grids"]
-    impls = []
-    for r in report.results:
-        if r.impl not in impls:
-            impls.append(r.impl)
-    by = {(r.grid, r.impl): r for r in report.results}
-
-    fig, ax = plt.subplots(figsize=(9.5, 4.5))
-    width = 0.8 / max(len(impls), 1)
-    for i, impl in enumerate(impls):
-        xs = [g_i + (i - (len(impls) - 1) / 2) * width for g_i in range(len(grids))]
-        ys = [by[(g, impl)].time_for_steps_s if (g, impl) in by else np.nan for g in grids]
-        ax.bar(xs, ys, width, label=impl)
-    ax.set_xticks(range(len(grids)), [f"{g}x{g}" for g in grids])
-    ax.set_yscale("log")
-    ax.set_xlabel("grid size")
-    ax.set_ylabel(f"wall-clock for {steps:,} steps (s, log)")
-    ax.set_title(f"JAX vs NumPy: time for {steps:,} random-action steps")
-    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), title="implementation")
-    ax.grid(axis="y", which="both", alpha=0.3)
-    fig.tight_layout()
-    paths["time_png"] = out_dir / "bench_time_100k.png"
-    fig.savefig(paths["time_png"], dpi=120)
-    plt.close(fig)
-
-    fig, ax = plt.subplots(figsize=(6.5, 4.5))
-    for g in grids:
-        rows = sorted(
-            (
-                r
-                for r in report.results
-                if r.grid == g and r.impl.startswith("jax-b") and r.impl != "jax-b1-py"
-            ),
-            key=lambda r: r.batch,
-        )
-        ax.plot(
-            [r.batch for r in rows], [r.steps_per_s for r in rows], marker="o", label=f"JAX {g}x{g}"
-        )
-        if (g, "numpy") in by:
-            ax.axhline(
-                by[(g, "numpy")].steps_per_s, ls="--", lw=0.8, color=ax.lines[-1].get_color()
-            )
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    ax.set_xlabel("envs per call (vmap batch)")
-    ax.set_ylabel("env steps / s (log)")
-    ax.set_title("Throughput vs batch size (dashed: NumPy twin, 1 env)")
-    ax.legend(fontsize=8)
-    ax.grid(which="both", alpha=0.3)
-    fig.tight_layout()
-    paths["batch_png"] = out_dir / "bench_batch.png"
-    fig.savefig(paths["batch_png"], dpi=120)
-    plt.close(fig)
+    paths["time_png"] = draw_time(report, out_dir / "bench_time_100k.png")
+    paths["batch_png"] = draw_batch(report, out_dir / "bench_batch.png")
     return paths
 
 
