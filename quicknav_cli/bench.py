@@ -19,6 +19,7 @@ from quicknav_cli.common import (
     expose_cpu_devices,
     fail,
     sets,
+    warn,
 )
 from quicknav_core.config import ConfigError
 
@@ -141,7 +142,7 @@ def bench_env(
     for row in format_table(report):
         table.add_row(*row)
     show_with_targets(table, 120, report.targets)
-    paths = write_outputs(report, out)
+    paths = write_outputs(report, out, warn=warn)
     console.print("wrote " + ", ".join(str(p) for p in paths.values()))
 
 

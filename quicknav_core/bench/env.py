@@ -394,16 +394,25 @@ def run_bench(cfg: BenchConfig, progress: Callable[[str], None] | None = None) -
     return report
 
 
-def write_outputs(report: BenchReport, out_dir: Path) -> dict[str, Path]:
+def write_outputs(report: BenchReport, out_dir: Path,
+                  warn: Callable[[str], None] | None = None) -> dict[str, Path]:  # fmt: skip
     """bench.json, then its pictures (``bench.pictures``): bench_time_100k.png (the paper's figure)
-    and bench_batch.png."""
+    and bench_batch.png; the files written. A picture that fails is left out and told to ``warn``
+    (default: ``warnings.warn``), never a lost result."""
+    import warnings
+
     from quicknav_core.bench.pictures import draw_batch, draw_time
+    from quicknav_core.eval.pictures import picture_warning
 
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {"json": out_dir / "bench.json"}
     paths["json"].write_text(json.dumps(report.to_json(), indent=2))
-    paths["time_png"] = draw_time(report, out_dir / "bench_time_100k.png")
-    paths["batch_png"] = draw_batch(report, out_dir / "bench_batch.png")
+    for key, name, draw in (("time_png", "bench_time_100k.png", draw_time),
+                            ("batch_png", "bench_batch.png", draw_batch)):  # fmt: skip
+        try:
+            paths[key] = draw(report, out_dir / name)
+        except Exception as e:  # a picture never costs the figures
+            (warn or warnings.warn)(picture_warning(name, e))
     return paths
 
 

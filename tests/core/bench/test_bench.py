@@ -35,6 +35,12 @@ def test_bench__tiny_run_is_complete_and_consistent(tmp_path):
                 "peak_memory_bytes", "seconds", "steps_timed"):  # fmt: skip
         assert key in row
     assert paths["time_png"].stat().st_size > 5000 and paths["batch_png"].stat().st_size > 5000
+    # a picture that fails is told and left out; the figures are written all the same
+    told = []
+    broken = type(report)(**{**report.__dict__, "config": {**report.config, "grids": None}})
+    again = write_outputs(broken, tmp_path / "broken", warn=told.append)
+    assert set(again) == {"json"} and again["json"].is_file(), again
+    assert [t.split(" ")[0] for t in told] == ["bench_time_100k.png", "bench_batch.png"], told
 
 
 def test_check_targets__reads_the_right_rows():
