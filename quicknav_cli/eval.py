@@ -59,6 +59,14 @@ def eval_request(
     return request
 
 
+def default_out(run_dir: Path | None, policy: str | None, on_map: Path | None) -> Path:
+    """Where an evaluation is written without --out: RUN/eval for a run (what export reads as its
+    held-out success), eval/POLICY for a baseline; one on a map beside it, never over it
+    (RUN/eval-MAP, eval/POLICY-MAP: MAP the map file's name without its suffix)."""
+    on = f"-{Path(on_map).stem}" if on_map is not None else ""
+    return run_dir / f"eval{on}" if run_dir is not None else Path("eval") / f"{policy}{on}"
+
+
 def map_layer(say: bool = True):
     """``resolve_eval``'s ``map_env`` for the command line: a map file (a server's ``map:<id>``
     is refused, naming where to download it), laid as every door lays it
@@ -104,7 +112,8 @@ def eval_cmd(
     ] = None,
     set_: EnvSetOpt = None,
     out: Annotated[
-        Path | None, typer.Option(help="Folder for eval.json and pictures (default RUN/eval).")
+        Path | None, typer.Option(help="Folder for eval.json and pictures (default RUN/eval, and"
+                                  " RUN/eval-MAP for --map MAP: the held-out one stays).")
     ] = None,
     robustness: Annotated[
         bool,
@@ -148,12 +157,8 @@ def eval_cmd(
     from quicknav_core.eval.evaluate import run_eval
     from quicknav_core.layout import RunFolder
 
-    if run is not None:
-        run_dir = RunFolder.of(run).path
-        out_dir = out or (run_dir / "eval")
-    else:
-        run_dir = None
-        out_dir = out or Path("eval") / policy
+    run_dir = RunFolder.of(run).path if run is not None else None
+    out_dir = out or default_out(run_dir, policy, on_map)
     from quicknav_core.runtime import Runtime
 
     runtime = Runtime()

@@ -221,6 +221,18 @@ def test_eval_map__a_plain_image_read_at_the_scale_set_and_only_the_map_named(tm
     assert both.exit_code == 2 and "env.maps.test: the map evaluated on is the request's map" in both.output
 
 
+def test_eval_map__written_beside_the_held_out_evaluation_not_over_it(tmp_path):
+    """Without --out, `quicknav eval RUN --map MAP` writes RUN/eval-MAP: RUN/eval keeps the held-out
+    evaluation that `quicknav export` reads as the policy's held-out success."""
+    from quicknav_cli.eval import default_out
+
+    run = tmp_path / "runs" / "building-s0"
+    assert default_out(run, None, None) == run / "eval"
+    assert default_out(run, None, Path("examples/maps/office.yaml")) == run / "eval-office"
+    assert default_out(None, "oracle", None) == Path("eval") / "oracle"
+    assert default_out(None, "dwa", Path("depot.yaml")) == Path("eval") / "dwa-depot"
+
+
 class Pursuit(StandIn):
     """A stand-in policy that steers at the plan's first waypoint (no learning): what the
     Navigator's re-planning gives it is what it drives."""
