@@ -82,10 +82,11 @@ def run_demo(config: EnvConfig, out_dir: Path, policy: str = "oracle", seed: int
     out_dir.mkdir(parents=True, exist_ok=True)
     title = f"{policy} policy: {'goal reached' if reached else 'timed out'}, return {ret:.1f}"
     traj = ep.trajectories[0, : steps + 1]
-    png = render.save_png(
-        render.render_frame(snaps[-1], config, traj, title=title, size_px=480), out_dir / "demo.png"
-    )
-    frames = render.episode_frames(snaps[:: max(1, len(snaps) // 150)], config, title=policy)
+    view = [render.room_view(ep.walls[0], config)]  # a long narrow map: frames of its shape
+    png = render.save_png(render.render_frame(snaps[-1], config, traj, title=title,
+                                              size_px=render.gif_frame_size(view, 480)), out_dir / "demo.png")  # fmt: skip
+    frames = render.episode_frames(snaps[:: max(1, len(snaps) // 150)], config, title=policy,
+                                   size_px=render.gif_frame_size(view, 360))  # fmt: skip
     gif = render.save_gif(frames, out_dir / "demo.gif", fps=12)
     return DemoResult(png, gif, steps, reached, ret, int(ep.collisions[0]))
 

@@ -255,9 +255,9 @@ def render_frame(
     config: EnvConfig,
     trajectory: np.ndarray | None = None,
     title: str | None = None,
-    size_px: int = 360,
+    size_px: int | tuple[int, int] = 360,
 ) -> np.ndarray:
-    """One frame as an RGB uint8 array (size_px x size_px)."""
+    """One frame as an RGB uint8 array (size_px x size_px, or (width, height))."""
     with FrameDrawer(config, size_px) as drawer:
         return drawer.draw(state, trajectory, title=title)
 
@@ -360,8 +360,9 @@ def save_gif(frames: Sequence[np.ndarray], path: str | Path, fps: float = 10.0) 
 
 
 def episode_frames(
-    snapshots: Iterable[Any], config: EnvConfig, title: str | None = None, size_px: int = 360
-) -> list[np.ndarray]:
+    snapshots: Iterable[Any], config: EnvConfig, title: str | None = None,
+    size_px: int | tuple[int, int] = 360,
+) -> list[np.ndarray]:  # fmt: skip
     """Frames of an episode with its trajectory so far drawn behind the robot."""
     frames, path = [], []
     with FrameDrawer(config, size_px) as drawer:
