@@ -243,9 +243,17 @@ def test_delete__refused_while_a_queued_job_uses_the_map(server):
     assert httpx.delete(f"{server.url}/maps/{meta['id']}").status_code == 404
 
 
-def test_train_and_eval_jobs_run_on_an_uploaded_map(server):
-    """The worker reads the map from the store by its id; the eval's replay carries the map."""
-    meta = upload(server.url, [("room.yaml", yaml_for()), ("room.pgm", pgm(room_picture()))]).json()
+def test_train_and_eval_jobs_run_on_an_uploaded_map(server, monkeypatch):
+    """The worker reads the map from the store by its id; the eval's replay carries the map, and
+    its pictures' titles name it as it was uploaded (the worker's Runtime.map_name)."""
+    from quicknav_core.eval import pictures
+
+    titles = []
+    drawn = pictures.draw_trajectories
+    monkeypatch.setattr(pictures, "draw_trajectories",
+                        lambda *a, **kw: (titles.append(kw["where"]), drawn(*a, **kw))[1])  # fmt: skip
+    meta = upload(server.url, [("room.yaml", yaml_for()), ("room.pgm", pgm(room_picture()))],
+                  name="test room").json()  # fmt: skip
     env = {"env.rooms": "maps", "env.maps.train": [meta["ref"]], "env.grid_size": 18,
            "env.room_size": 9.0}  # fmt: skip
     r = httpx.post(f"{server.url}/jobs/train", json={"preset": "demo", "overrides": {**TINY, **env}})
@@ -265,6 +273,7 @@ def test_train_and_eval_jobs_run_on_an_uploaded_map(server):
     # where the map's picture lies in the room: its lower-left corner at cell (1, 1)
     assert replay["maps"] == {meta["ref"]: {"x0": 0.5, "y0": 0.5, "width_m": 7.6, "height_m": 7.6}}
     assert {e["map"] for e in replay["episodes"]} == {meta["ref"]}
+    assert titles == ['map "test room"'], titles
 
 
 def test_eval_job_with_a_map__laid_at_the_policys_cell_size_and_refused_naming_the_map(server):
