@@ -776,7 +776,7 @@ const PLAN_COLOUR = "#17becf", BOX_COLOUR = "#8c564b", PERSON_COLOUR = "#9467bd"
 // in the smallest square grid that holds it, the rest wall. The canvas takes the view's shape
 const CANVAS_PX = 520; // the longer side (of most views: canvasScale)
 // a long narrow map (a corridor) gets a longer side, up to twice, so its short side keeps at least
-// this many pixels where it can (a 5 m x 30 m corridor: 168 x 1040 rather than 87 x 520)
+// this many pixels where it can (a 5 m x 30 m corridor: about 180 x 1040 rather than 90 x 520)
 const CANVAS_MIN_SIDE_PX = 200;
 
 function canvasScale(view) {
