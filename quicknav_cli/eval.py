@@ -59,12 +59,18 @@ def eval_request(
     return request
 
 
-def default_out(run_dir: Path | None, policy: str | None, on_map: Path | None) -> Path:
-    """Where an evaluation is written without --out: RUN/eval for a run (what export reads as its
-    held-out success), eval/POLICY for a baseline; one on a map beside it, never over it
-    (RUN/eval-MAP, eval/POLICY-MAP: MAP the map file's name without its suffix)."""
-    on = f"-{Path(on_map).stem}" if on_map is not None else ""
-    return run_dir / f"eval{on}" if run_dir is not None else Path("eval") / f"{policy}{on}"
+def default_out(run_dir: Path | None, policy: str | None, on_map: Path | None,
+                split: str = "test", deterministic: bool = True) -> Path:  # fmt: skip
+    """Where an evaluation is written without --out: RUN/eval for a run (its held-out evaluation,
+    what export reads as the policy's held-out success), eval/POLICY for a baseline; one on a
+    map, on the training rooms or acting stochastically beside it, never over it (RUN/eval-MAP,
+    RUN/eval-train, RUN/eval-stochastic, in that order when several; MAP the map file's name
+    without its suffix)."""
+    parts = [Path(on_map).stem] if on_map is not None else []
+    parts += ["train"] if split == "train" else []
+    parts += [] if deterministic else ["stochastic"]
+    tail = "".join(f"-{p}" for p in parts)
+    return run_dir / f"eval{tail}" if run_dir is not None else Path("eval") / f"{policy}{tail}"
 
 
 def map_layer(say: bool = True):
@@ -112,8 +118,9 @@ def eval_cmd(
     ] = None,
     set_: EnvSetOpt = None,
     out: Annotated[
-        Path | None, typer.Option(help="Folder for eval.json and pictures (default RUN/eval, and"
-                                  " RUN/eval-MAP for --map MAP: the held-out one stays).")
+        Path | None, typer.Option(help="Folder for eval.json and pictures (default RUN/eval; with"
+                                  " --map MAP, --split train or --stochastic RUN/eval-MAP,"
+                                  " RUN/eval-train, RUN/eval-stochastic: the held-out one stays).")
     ] = None,
     robustness: Annotated[
         bool,
@@ -158,7 +165,7 @@ def eval_cmd(
     from quicknav_core.layout import RunFolder
 
     run_dir = RunFolder.of(run).path if run is not None else None
-    out_dir = out or default_out(run_dir, policy, on_map)
+    out_dir = out or default_out(run_dir, policy, on_map, split, deterministic)
     from quicknav_core.runtime import Runtime
 
     runtime = Runtime()

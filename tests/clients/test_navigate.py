@@ -222,8 +222,9 @@ def test_eval_map__a_plain_image_read_at_the_scale_set_and_only_the_map_named(tm
 
 
 def test_eval_map__written_beside_the_held_out_evaluation_not_over_it(tmp_path):
-    """Without --out, `quicknav eval RUN --map MAP` writes RUN/eval-MAP: RUN/eval keeps the held-out
-    evaluation that `quicknav export` reads as the policy's held-out success."""
+    """Without --out, `quicknav eval RUN --map MAP` writes RUN/eval-MAP (and --split train, or
+    --stochastic, RUN/eval-train, RUN/eval-stochastic): RUN/eval keeps the held-out evaluation
+    that `quicknav export` reads as the policy's held-out success."""
     from quicknav_cli.eval import default_out
 
     run = tmp_path / "runs" / "building-s0"
@@ -231,6 +232,10 @@ def test_eval_map__written_beside_the_held_out_evaluation_not_over_it(tmp_path):
     assert default_out(run, None, Path("examples/maps/office.yaml")) == run / "eval-office"
     assert default_out(None, "oracle", None) == Path("eval") / "oracle"
     assert default_out(None, "dwa", Path("depot.yaml")) == Path("eval") / "dwa-depot"
+    # the training rooms, or acting stochastically: beside it too
+    assert default_out(run, None, None, split="train") == run / "eval-train"
+    assert default_out(run, None, None, deterministic=False) == run / "eval-stochastic"
+    assert default_out(run, None, Path("office.yaml"), "train", False) == run / "eval-office-train-stochastic"
 
 
 class Pursuit(StandIn):
