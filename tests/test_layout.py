@@ -105,9 +105,10 @@ def test_env__private_names_stay_inside_env():
 
 
 # the modules that draw (matplotlib): the env's frames, and the pictures of evaluations, of training
-# and sweeps, and of the env benchmark; deferred_imports only names matplotlib.pyplot to defer it
+# and sweeps, and of the env benchmark, and drawing (a failed picture's figures closed);
+# deferred_imports only names matplotlib.pyplot to defer it
 DRAWING = {"quicknav_core.env.render", "quicknav_core.eval.pictures", "quicknav_core.train.pictures",
-           "quicknav_core.bench.pictures"}  # fmt: skip
+           "quicknav_core.bench.pictures", "quicknav_core.drawing"}  # fmt: skip
 
 
 def test_library__draws_only_in_its_render_and_pictures_modules():

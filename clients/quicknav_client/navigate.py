@@ -108,14 +108,22 @@ class GridPlanner:
         self.field: np.ndarray | None = None
         self.goal: np.ndarray | None = None
 
+    def inside(self, x: float, y: float) -> bool:
+        """Whether a point lies on the grid."""
+        rows, cols = self.walls.shape
+        return 0 <= math.floor(y / self.cell) < rows and 0 <= math.floor(x / self.cell) < cols
+
     def cell_of(self, x: float, y: float) -> tuple[int, int]:
         """(row, col) of a point; ValueError outside the grid."""
-        r, c = math.floor(y / self.cell), math.floor(x / self.cell)
-        rows, cols = self.walls.shape
-        if not (0 <= r < rows and 0 <= c < cols):
+        if not self.inside(x, y):
+            rows, cols = self.walls.shape
             raise ValueError(f"({x:.2f}, {y:.2f}) m lies outside the map's grid"
                              f" ({cols * self.cell:g} m x {rows * self.cell:g} m)")  # fmt: skip
-        return r, c
+        return math.floor(y / self.cell), math.floor(x / self.cell)
+
+    def fits(self, x: float, y: float) -> bool:
+        """Whether the robot fits at a point of the grid (its cell is usable)."""
+        return bool(self.usable[self.cell_of(x, y)])
 
     def plan(self, goal: Any) -> np.ndarray:
         """Plan to ``goal`` (x, y): the path length in cells from every cell to the goal's cell
@@ -124,7 +132,7 @@ class GridPlanner:
 
         gx, gy = float(goal[0]), float(goal[1])
         r, c = self.cell_of(gx, gy)
-        if not self.usable[r, c]:
+        if not self.fits(gx, gy):
             raise ValueError(f"goal ({gx:.2f}, {gy:.2f}) m: the robot does not fit there on the map"
                              " (a wall, or closer to one than the robot's radius)")  # fmt: skip
         rows, cols = self.walls.shape
@@ -258,9 +266,9 @@ class Navigator:
         """A map-frame point in the grid frame; ValueError naming it in the map frame, and the
         map's extent there, when it lies outside the map's grid."""
         gx, gy = self.to_grid(x, y)
-        rows, cols = self.walls.shape
-        cell = self.planner.cell
-        if not (0 <= math.floor(gy / cell) < rows and 0 <= math.floor(gx / cell) < cols):
+        if not self.planner.inside(gx, gy):
+            rows, cols = self.walls.shape
+            cell = self.planner.cell
             x0, y0 = (float(v) for v in self.corner)
             hint = ("check the localisation (map -> base_link)" if what == "pose" else
                     "a goal is given in the map frame, as RViz's 2D Goal Pose gives it")  # fmt: skip
@@ -275,7 +283,7 @@ class Navigator:
         x, y = float(goal[0]), float(goal[1])
         gx, gy = self._on_map("goal", x, y)
         planner = self.planner if not self.blocked.any() else GridPlanner(self.walls, *self._planner_args)
-        if not planner.usable[planner.cell_of(gx, gy)]:
+        if not planner.fits(gx, gy):
             raise ValueError(f"goal ({x:.2f}, {y:.2f}) m in the map frame: the robot does not fit"
                              " there on the map (a wall, or closer to one than the robot's radius)")  # fmt: skip
         planner.plan((gx, gy))

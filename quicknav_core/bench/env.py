@@ -402,17 +402,18 @@ def write_outputs(report: BenchReport, out_dir: Path,
     import warnings
 
     from quicknav_core.bench.pictures import draw_batch, draw_time
-    from quicknav_core.eval.pictures import picture_warning
+    from quicknav_core.drawing import draw_safely
 
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {"json": out_dir / "bench.json"}
     paths["json"].write_text(json.dumps(report.to_json(), indent=2))
     for key, name, draw in (("time_png", "bench_time_100k.png", draw_time),
                             ("batch_png", "bench_batch.png", draw_batch)):  # fmt: skip
-        try:
-            paths[key] = draw(report, out_dir / name)
-        except Exception as e:  # a picture never costs the figures
-            (warn or warnings.warn)(picture_warning(name, e))
+        warning = draw_safely(out_dir / name, lambda path, draw=draw: draw(report, path))
+        if warning is None:
+            paths[key] = out_dir / name
+        else:
+            (warn or warnings.warn)(warning)
     return paths
 
 

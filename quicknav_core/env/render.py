@@ -322,17 +322,26 @@ def gif_palette(frames: Sequence[np.ndarray]) -> Image.Image:
     return Image.fromarray(stacked).quantize(colors=255, method=Image.Quantize.FASTOCTREE)
 
 
+def narrow_shape(sizes: Sequence[tuple[float, float]]) -> tuple[str, float]:
+    """How pictures of views of these (width, height) metres are laid out: ``"tall"`` when every
+    view is at least twice as tall as wide (a corridor's map), ``"wide"`` when every one is at
+    least twice as wide, else ``""`` (square layouts); and the largest height / width."""
+    aspects = [h / w for w, h in sizes if w > 0 and h > 0] or [1.0]
+    shape = "tall" if min(aspects) >= 2.0 else "wide" if max(aspects) <= 0.5 else ""
+    return shape, max(aspects)
+
+
 def gif_frame_size(views: Sequence[tuple[float, float, float, float]], side_px: int = 320) -> tuple[int, int]:
     """(width, height) in pixels of the frames that show these views ((x0, x1, y0, y1) metres,
     ``room_view``): a square of ``side_px``, but for views all at least twice as tall as wide (a
     corridor's map) a frame 1.75 times as tall and at most as wide, and for views all at least
     twice as wide a frame 1.75 times as wide (whose blank bottom ``save_gif`` cuts), so the map
     is drawn larger than a strip of a square."""
-    aspects = [(y1 - y0) / (x1 - x0) for x0, x1, y0, y1 in views if x1 > x0 and y1 > y0] or [1.0]
+    shape, tallest = narrow_shape([(x1 - x0, y1 - y0) for x0, x1, y0, y1 in views])
     long = round(1.75 * side_px)
-    if min(aspects) >= 2.0:
-        return max(200, min(side_px, round(0.9 * long / max(aspects)) + 40)), long
-    if max(aspects) <= 0.5:
+    if shape == "tall":
+        return max(200, min(side_px, round(0.9 * long / tallest) + 40)), long
+    if shape == "wide":
         return long, long
     return side_px, side_px
 

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from quicknav_core.config import EnvConfig
+from quicknav_core.drawing import draw_safely, picture_warning
 from quicknav_core.eval.aggregate import performance_profile
 from quicknav_core.eval.episodes import Episodes, episode_plan, outcome
 from quicknav_core.layout import EVAL
@@ -22,12 +23,6 @@ from quicknav_core.layout import EVAL
 __all__ = ["draw_all", "draw_difficulty", "draw_gif", "draw_profiles", "draw_robustness", "draw_trajectories",
            "episode_snapshot", "obstacles_at", "picture_warning", "rooms_in_words",
            "trajectory_panels"]  # fmt: skip
-
-
-def picture_warning(name: str, error: BaseException) -> str:
-    """The warning a job shows when the picture ``name`` failed: the file and why."""
-    why = str(error).strip().splitlines()[0] if str(error).strip() else ""
-    return f"{name} was not drawn: {type(error).__name__}{': ' + why if why else ''}"
 
 
 def rooms_in_words(config: EnvConfig, split: str = "test",
@@ -61,8 +56,6 @@ def draw_all(
 ) -> list[str]:  # fmt: skip
     """Draw every picture of an evaluation into ``out_dir``; the warnings of those that failed.
     ``map_name``: uploaded maps' names for the titles (``rooms_in_words``)."""
-    import matplotlib.pyplot as plt
-
     where = rooms_in_words(config, split, map_name)
     jobs = [(EVAL.trajectories, lambda p: draw_trajectories(ep, config, p, title=title, where=where)),
             (EVAL.difficulty, lambda p: draw_difficulty(rows, p, title=title))]  # fmt: skip
@@ -70,15 +63,8 @@ def draw_all(
         jobs.append((EVAL.robustness, lambda p: draw_robustness(robustness, p, title=title)))
     if gif and ep.gif["theta"].shape[0]:
         jobs.append((EVAL.gif, lambda p: draw_gif(ep, config, p, title=title)))
-    warnings = []
-    for name, draw in jobs:
-        try:
-            draw(Path(out_dir) / name)
-        except Exception as e:  # a picture never fails the evaluation
-            plt.close("all")
-            (Path(out_dir) / name).unlink(missing_ok=True)  # no half-written file left behind
-            warnings.append(picture_warning(name, e))
-    return warnings
+    warnings = [draw_safely(Path(out_dir) / name, draw) for name, draw in jobs]
+    return [w for w in warnings if w is not None]
 
 
 def draw_difficulty(rows: list[dict[str, Any]], path: Path, title: str = "") -> Path:
@@ -162,7 +148,7 @@ def draw_trajectories(ep: Episodes, config: EnvConfig, path: Path, title: str = 
     from quicknav_core.env import render
 
     count = min(9, ep.success.size)
-    views = [render.room_view(ep.walls[i], config) for i in range(count)]
+    views = [render.room_view(ep.walls[i], config) for i in range(count)]  # as the GIF's frames
     rows, cols, figsize = trajectory_panels([(x1 - x0, y1 - y0) for x0, x1, y0, y1 in views])
     fig, axes = plt.subplots(rows, cols, figsize=figsize, squeeze=False)
     for i, ax in enumerate(axes.flat):
@@ -199,16 +185,17 @@ def draw_trajectories(ep: Episodes, config: EnvConfig, path: Path, title: str = 
 
 def trajectory_panels(sizes: list[tuple[float, float]]) -> tuple[int, int, tuple[float, float]]:
     """(rows, columns, figure size in inches) for ``draw_trajectories``' panels of views of these
-    (width, height) metres: a 3 x 3 grid, but a row of panels when every view is at least twice
-    as tall as wide (a corridor's map) and a column when every one is at least twice as wide, so
-    the map fills its panel instead of a strip of a square."""
+    (width, height) metres: a 3 x 3 grid, but a row of panels for tall views and a column for wide
+    ones (``render.narrow_shape``), so the map fills its panel instead of a strip of a square."""
+    from quicknav_core.env.render import narrow_shape
+
     count = max(len(sizes), 1)
-    aspects = [h / w for w, h in sizes if w > 0 and h > 0] or [1.0]
-    if min(aspects) >= 2.0:  # tall: side by side, 8.4 in high
-        width = max(8.4 / max(aspects), 1.1)
+    shape, tallest = narrow_shape(sizes)
+    if shape == "tall":  # side by side, 8.4 in high
+        width = max(8.4 / tallest, 1.1)
         return 1, count, (max(count * (width + 0.35) + 0.4, 4.0), 9.6)
-    if max(aspects) <= 0.5:  # wide: one above the other, 9 in wide
-        height = max(9.0 * max(aspects), 1.0)
+    if shape == "wide":  # one above the other, 9 in wide
+        height = max(9.0 * tallest, 1.0)
         return count, 1, (9.4, count * (height + 0.45) + 0.7)
     return 3, 3, (9.0, 9.4)
 

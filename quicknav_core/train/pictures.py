@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from quicknav_core.drawing import draw_safely
 from quicknav_core.layout import RunFolder
 
 
@@ -55,20 +56,13 @@ def draw_learning_curve(run_dir: Path) -> Path | None:
 def draw_learning_curve_safely(run_dir: Path) -> list[str]:
     """``draw_learning_curve``; its failure as a warning naming the file (nothing half-drawn)."""
     run = RunFolder(run_dir)
-    try:
-        draw_learning_curve(run.path)
-    except Exception as e:  # a picture never costs a run its checkpoint and numbers
-        import matplotlib.pyplot as plt
-
-        plt.close("all")
-        run.curve.unlink(missing_ok=True)
-        return [f"{run.curve.name} was not drawn: {type(e).__name__}: {e}"]
-    return []
+    warning = draw_safely(run.curve, lambda _path: draw_learning_curve(run.path))
+    return [warning] if warning else []
 
 
 def draw_study(study, cfg, out_dir: Path) -> dict[str, str]:
     """A sweep's study plots as PNGs in ``out_dir`` (once a trial has completed); the plots that
-    failed, by name, with why."""
+    failed, by name, with their warnings (``drawing.picture_warning``)."""
     import optuna
 
     complete = [t for t in study.get_trials(deepcopy=False)
@@ -84,17 +78,19 @@ def draw_study(study, cfg, out_dir: Path) -> dict[str, str]:
              "parallel_coordinate": optuna.visualization.matplotlib.plot_parallel_coordinate}  # fmt: skip
     if len(complete) >= 2 and len(cfg.space) >= 2:
         plots["param_importances"] = optuna.visualization.matplotlib.plot_param_importances
+    def draw(fn, path: Path) -> None:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # Optuna marks its matplotlib plots experimental
+            ax = fn(study)
+        fig = ax.figure if hasattr(ax, "figure") else np.ravel(ax)[0].figure
+        fig.set_size_inches(9, 5)
+        fig.tight_layout()
+        fig.savefig(path, dpi=100)
+        plt.close(fig)
+
     errors: dict[str, Any] = {}
     for name, fn in plots.items():
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")  # Optuna marks its matplotlib plots experimental
-                ax = fn(study)
-            fig = ax.figure if hasattr(ax, "figure") else np.ravel(ax)[0].figure
-            fig.set_size_inches(9, 5)
-            fig.tight_layout()
-            fig.savefig(Path(out_dir) / f"{name}.png", dpi=100)
-            plt.close(fig)
-        except Exception as e:
-            errors[name] = f"{type(e).__name__}: {e}"
+        warning = draw_safely(Path(out_dir) / f"{name}.png", lambda path, fn=fn: draw(fn, path))
+        if warning is not None:
+            errors[name] = warning
     return errors

@@ -306,6 +306,17 @@ def test_eval_job_with_a_map__laid_at_the_policys_cell_size_and_refused_naming_t
         assert r.status_code == 422, r.text
         [item] = r.json()["detail"]
         assert item["loc"][-1] == "map" and says in item["msg"], item
+    # how the map is read goes with it (env maps.<field>), the map lists may not
+    r = httpx.post(f"{server.url}/jobs/eval", json={"job_id": train["id"], "map": meta["ref"],
+                                                    "env": {"maps.unknown": "free"}})  # fmt: skip
+    assert r.status_code == 202, r.text
+    maps = r.json()["config"]["env"]["maps"]
+    assert (maps["train"], maps["test"], maps["unknown"]) == ([meta["ref"]], None, "free"), maps
+    r = httpx.post(f"{server.url}/jobs/eval", json={"job_id": train["id"], "map": meta["ref"],
+                                                    "env": {"maps.test": ["map:0123456789abcdef"]}})  # fmt: skip
+    assert r.status_code == 422, r.text
+    [item] = r.json()["detail"]
+    assert item["loc"][-2:] == ["env", "maps.test"] and "the request's map" in item["msg"], item
 
 
 def test_rollout_start_on_an_uploaded_map_steps_as_the_env_on_the_file(tmp_path):
