@@ -60,17 +60,38 @@ def eval_request(
 
 
 def default_out(run_dir: Path | None, policy: str | None, on_map: Path | None,
-                split: str = "test", deterministic: bool = True) -> Path:  # fmt: skip
+                split: str = "test", deterministic: bool = True, shield: bool = False,
+                sets: dict[str, Any] | None = None) -> Path:  # fmt: skip
     """Where an evaluation is written without --out: RUN/eval for a run (its held-out evaluation,
     what export reads as the policy's held-out success), eval/POLICY for a baseline; one on a
-    map, on the training rooms or acting stochastically beside it, never over it (RUN/eval-MAP,
-    RUN/eval-train, RUN/eval-stochastic, in that order when several; MAP the map file's name
-    without its suffix)."""
+    map, on the training rooms, acting stochastically, through the safety layer or in an env that
+    --set changed beside it, never over it (RUN/eval-MAP, RUN/eval-train, RUN/eval-stochastic,
+    RUN/eval-shield, RUN/eval-KEY=VALUE, in that order when several; MAP the map file's name
+    without its suffix; a map's ``maps.*`` reading is part of its name already)."""
     parts = [Path(on_map).stem] if on_map is not None else []
     parts += ["train"] if split == "train" else []
     parts += [] if deterministic else ["stochastic"]
+    parts += ["shield"] if shield else []
+    changed = {k: v for k, v in (sets or {}).items() if on_map is None or not k.startswith("maps.")}
+    if changed:
+        parts.append(_sets_name(changed))
     tail = "".join(f"-{p}" for p in parts)
     return run_dir / f"eval{tail}" if run_dir is not None else Path("eval") / f"{policy}{tail}"
+
+
+def _sets_name(changed: dict[str, Any]) -> str:
+    """A folder name for --set items: KEY=VALUE joined by '-' in the order given, characters a file
+    name would trip on replaced by '_'; past 60 characters the first ones and a digest of all."""
+    import hashlib
+    import json
+    import re
+
+    text = "-".join(f"{k}={v if isinstance(v, str) else json.dumps(v, separators=(',', ':'))}"
+                    for k, v in changed.items())  # fmt: skip
+    name = re.sub(r"[^A-Za-z0-9._=+-]", "_", text)
+    if len(name) > 60:
+        name = f"{name[:48]}-{hashlib.sha1(text.encode()).hexdigest()[:8]}"
+    return name
 
 
 def map_layer(say: bool = True):
@@ -119,8 +140,9 @@ def eval_cmd(
     set_: EnvSetOpt = None,
     out: Annotated[
         Path | None, typer.Option(help="Folder for eval.json and pictures (default RUN/eval; with"
-                                  " --map MAP, --split train or --stochastic RUN/eval-MAP,"
-                                  " RUN/eval-train, RUN/eval-stochastic: the held-out one stays).")
+                                  " --map MAP, --split train, --stochastic, --shield or --set K=V"
+                                  " beside it: RUN/eval-MAP, RUN/eval-train, RUN/eval-stochastic,"
+                                  " RUN/eval-shield, RUN/eval-K=V; the held-out one stays).")
     ] = None,
     robustness: Annotated[
         bool,
@@ -165,7 +187,8 @@ def eval_cmd(
     from quicknav_core.layout import RunFolder
 
     run_dir = RunFolder.of(run).path if run is not None else None
-    out_dir = out or default_out(run_dir, policy, on_map, split, deterministic)
+    out_dir = out or default_out(run_dir, policy, on_map, split, deterministic, shield,
+                                 env_sets(set_))
     from quicknav_core.runtime import Runtime
 
     runtime = Runtime()
@@ -180,7 +203,7 @@ def eval_cmd(
     print_eval(result)
     for b in result["by_path_length"]:
         hi = f"{b['path_m'][1]:g}" if b["path_m"][1] is not None else "..."
-        console.print(f"  oracle path {b['path_m'][0]:g}-{hi} m: {b['episodes']} episodes, success"
+        console.print(f"  oracle path {b['path_m'][0]:g}-{hi} m: {b['episodes']} episode{'s' * (b['episodes'] != 1)}, success"
                       f" {b['success_rate']:.0%}, SPL {b['spl']:.2f}")  # fmt: skip
     if result.get("robustness"):
         print_robustness(result["robustness"], result["agent"])

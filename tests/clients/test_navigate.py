@@ -222,9 +222,10 @@ def test_eval_map__a_plain_image_read_at_the_scale_set_and_only_the_map_named(tm
 
 
 def test_eval_map__written_beside_the_held_out_evaluation_not_over_it(tmp_path):
-    """Without --out, `quicknav eval RUN --map MAP` writes RUN/eval-MAP (and --split train, or
-    --stochastic, RUN/eval-train, RUN/eval-stochastic): RUN/eval keeps the held-out evaluation
-    that `quicknav export` reads as the policy's held-out success."""
+    """Without --out, `quicknav eval RUN --map MAP` writes RUN/eval-MAP (and --split train,
+    --stochastic, --shield or --set K=V: RUN/eval-train, RUN/eval-stochastic, RUN/eval-shield,
+    RUN/eval-K=V): RUN/eval keeps the held-out evaluation that `quicknav export` reads as the
+    policy's held-out success."""
     from quicknav_cli.eval import default_out
 
     run = tmp_path / "runs" / "building-s0"
@@ -236,6 +237,16 @@ def test_eval_map__written_beside_the_held_out_evaluation_not_over_it(tmp_path):
     assert default_out(run, None, None, split="train") == run / "eval-train"
     assert default_out(run, None, None, deterministic=False) == run / "eval-stochastic"
     assert default_out(run, None, Path("office.yaml"), "train", False) == run / "eval-office-train-stochastic"
+    # through the safety layer, or in an env --set changed: beside it too, named by what changed
+    assert default_out(run, None, None, shield=True) == run / "eval-shield"
+    assert default_out(run, None, None, sets={"lidar_fov_deg": 270, "obstacles": None}) == run / (
+        "eval-lidar_fov_deg=270-obstacles=null")
+    assert default_out(None, "oracle", None, sets={"rooms": "floorplan"}) == Path("eval") / "oracle-rooms=floorplan"
+    # a map's reading is part of its name; a long list is cut and told apart by a digest
+    assert default_out(run, None, Path("a.png"), sets={"maps.resolution": 0.05}) == run / "eval-a"
+    long = default_out(run, None, None, sets={f"reward.term_{i}": 1.5 for i in range(8)}).name
+    assert len(long) <= 70 and long != default_out(run, None, None, sets={"reward.term_0": 2}).name
+    assert "/" not in default_out(run, None, None, sets={"maps.names": ["x/y"]}).name
 
 
 class Pursuit(StandIn):
