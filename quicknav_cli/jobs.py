@@ -199,6 +199,10 @@ def jobs_submit(
     space: Annotated[
         str | None, typer.Option(help="sweep: a built-in search space (ppo, lstm, ...).")
     ] = None,
+    base: Annotated[
+        str | None, typer.Option(help="sweep: with --space, the preset its trials start from"
+                                 " (default: the space's paper preset).")
+    ] = None,
     config: Annotated[
         Path | None, typer.Option("--config", help="TrainConfig or SweepConfig JSON file.")
     ] = None,
@@ -262,8 +266,8 @@ def jobs_submit(
         fail("--job and --policy are for eval jobs")
     if kind == "eval" and (preset or config or space):
         fail("--preset, --space and --config are for train and sweep jobs; eval takes --job or --policy")
-    if kind != "sweep" and (trials or parallel):
-        fail("--trials and --parallel are for sweep jobs")
+    if kind != "sweep" and (trials or parallel or base):
+        fail("--trials, --parallel and --base are for sweep jobs")
     if kind == "eval" and total_steps:
         fail("--total-steps is for train and sweep jobs")
     if kind != "eval" and robustness:
@@ -301,7 +305,7 @@ def jobs_submit(
             if config is None and space is None:
                 fail("give --space SPACE (a built-in search space) or --config SWEEP.json")
             submitted = client.sweep(
-                space=space, config=read_json(config) if config is not None else None,
+                space=space, base=base, config=read_json(config) if config is not None else None,
                 trials=trials, parallel=parallel, total_steps=total_steps, overrides=overrides,
             )  # fmt: skip
         else:

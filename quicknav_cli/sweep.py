@@ -24,7 +24,7 @@ from quicknav_cli.common import (
 def sweep_request(
     space: str | None, config: Path | None, trials: int | None, parallel: int | None,
     total_steps: int | None, objective: str | None, storage: str | None, seed: int | None,
-    overrides: list[str] | None,
+    overrides: list[str] | None, base: str | None = None,
 ) -> dict[str, Any]:  # fmt: skip
     """The sweep request the flags describe (what the SDK would send to the service)."""
     from quicknav_core.config import BUILTIN_SPACES
@@ -41,8 +41,12 @@ def sweep_request(
         if value is not None:
             request[key] = value
     if config is not None:
+        if base is not None:
+            fail("--base goes with --space: a --config SweepConfig carries its own base")
         request["config"] = read_json(config)
     else:
+        if base is not None:
+            request["base"] = base
         if space not in BUILTIN_SPACES:
             fail(f"--space {space!r}: allowed values are {', '.join(BUILTIN_SPACES)}")
         request["space"] = space
@@ -53,6 +57,11 @@ def sweep(
     space: Annotated[
         str | None,
         typer.Option(help="Built-in search space: ppo sac td3 mlp lstm gtrxl (the paper's)."),
+    ] = None,
+    base: Annotated[
+        str | None,
+        typer.Option(help="With --space: the training preset its trials start from, such as"
+                     " building (default: the space's paper preset; quicknav presets lists them)."),
     ] = None,
     preset: Annotated[
         str | None, typer.Option(hidden=True, help="Deprecated name of --space.")
@@ -101,7 +110,7 @@ def sweep(
         warn(f"--preset is deprecated for sweeps: write --space {preset}")
         space = preset
     request = sweep_request(space, config, trials, parallel, total_steps, objective, storage, seed,
-                            set_)  # fmt: skip
+                            set_, base)  # fmt: skip
     cfg = resolved(resolve_sweep, request)
     if print_only:
         print_config(cfg)

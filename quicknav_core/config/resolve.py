@@ -26,6 +26,7 @@ from quicknav_core.config.sweep import (
     BUILTIN_SPACES,
     BUILTIN_TOTAL_STEPS,
     SPACE_BASE_PRESET,
+    ParamSpec,
     SweepConfig,
 )
 from quicknav_core.config.train import TrainConfig, unhonoured_fields, with_trainer_defaults
@@ -81,6 +82,12 @@ class SweepRequest(StrictModel):
     model_config = exactly_one_of("space", "config")
 
     space: SpaceName | None = Field(None, description="a built-in search space (the paper's)")
+    base: str | None = Field(
+        None, description="with a space: the training preset its trials start from (default: the"
+        " space's paper preset, paper-ppo for ppo); its algorithm and network must take the"
+        " space's parameters", examples=["building"],
+        json_schema_extra={"enum": [*PRESETS, None]},
+    )  # fmt: skip
     config: SweepConfig | None = Field(None, description="a full SweepConfig")
     trials: int | None = Field(None, ge=1, le=100_000, description="finished trials wanted")
     parallel: int | None = Field(None, ge=1, le=1024, description="trials asked at once")
@@ -98,6 +105,8 @@ class SweepRequest(StrictModel):
     def _one(self) -> SweepRequest:
         if (self.config is None) == (self.space is None):
             raise ValueError("give exactly one of 'config' (a SweepConfig) or 'space' (a built-in space)")
+        if self.base is not None and self.config is not None:
+            raise ValueError("'base' goes with 'space': a full SweepConfig carries its own base")
         return self
 
 
@@ -368,9 +377,10 @@ def resolve_sweep(request: SweepRequest | Mapping[str, Any]) -> SweepConfig:
     """The SweepConfig a sweep request asks for (space or config, then the overrides)."""
     req: SweepRequest = _request(SweepRequest, request)
     if req.space is not None:
-        base = get_preset(SPACE_BASE_PRESET[req.space]).model_dump(mode="json")
+        base = _space_base(req.space, req.base).model_dump(mode="json")
         base["total_steps"] = BUILTIN_TOTAL_STEPS
-        data = {"base": base, "space": BUILTIN_SPACES[req.space], "study_name": req.space}
+        name = req.space if req.base is None else f"{req.space}-{req.base}"
+        data = {"base": base, "space": BUILTIN_SPACES[req.space], "study_name": name}
         where = _Where(fallback=["space"])
     else:
         data = req.config.model_dump(mode="json")
@@ -385,6 +395,39 @@ def resolve_sweep(request: SweepRequest | Mapping[str, Any]) -> SweepConfig:
     problems = _apply(SweepConfig, data, changes, where)
     config = _validate(SweepConfig, data, where, problems)
     return config.model_copy(update={"base": _honoured(config.base, where, ("base",))})
+
+
+def _space_base(space: str, preset: str | None) -> TrainConfig:
+    """The TrainConfig a built-in space's trials start from: ``preset`` (the request's ``base``)
+    or the space's paper preset; refused, naming ``base``, unless it takes every parameter of the
+    space (space ppo tunes a PPO preset, lstm an LSTM one, ...) and can be swept (no curriculum)."""
+    if preset is None:
+        return get_preset(SPACE_BASE_PRESET[space])
+    if preset not in PRESETS:
+        raise ConfigError.single(["base"], f"unknown preset {preset!r}; known: {', '.join(PRESETS)}")
+    config = get_preset(preset)
+    missing = _untaken(config, space)
+    if missing:
+        takes = [other for other in BUILTIN_SPACES if not _untaken(config, other)]
+        hint = f"; spaces it takes: {', '.join(takes)}" if takes else ""
+        raise ConfigError.single(["base"], f"preset {preset!r} (algorithm {config.algorithm.name},"
+                                 f" network {config.network.kind}) has no {', '.join(missing)}"
+                                 f" for space {space!r} to tune{hint}")  # fmt: skip
+    if config.curriculum.enabled:
+        raise ConfigError.single(["base"], f"preset {preset!r} trains with a curriculum, which"
+                                 " sweep trials cannot (trials that share shapes run side by side)")  # fmt: skip
+    return config
+
+
+def _untaken(config: TrainConfig, space: str) -> list[str]:
+    """The parameters of a built-in space that ``config`` has no field for."""
+    missing = []
+    for name, spec in BUILTIN_SPACES[space].items():
+        try:
+            override_data(config, {name: ParamSpec.model_validate(spec).probe()})
+        except OverrideError:
+            missing.append(name)
+    return missing
 
 
 TrainedEnv = Callable[[str], EnvConfig]

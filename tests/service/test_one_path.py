@@ -118,6 +118,31 @@ def test_sweep__builtin_space_with_overrides(live):
         live, "sweep", {"space": "ppo"})["base"]["total_steps"]  # fmt: skip
 
 
+def test_sweep__a_space_on_a_preset_of_the_users_choice(live):
+    """`--base building`: the space's trials start from the building preset, not from the space's
+    paper preset; every door resolves it alike, and a preset the space cannot tune is refused,
+    naming `base`, what it lacks and the spaces it takes."""
+    flags = local("sweep", "--space", "ppo", "--base", "building", "--trials", "4")
+    body = rest(live, "sweep", {"space": "ppo", "base": "building", "trials": 4})
+    client = sdk(live, "sweep", space="ppo", base="building", trials=4)
+    submitted = jobs_cli(live, "sweep", "--space", "ppo", "--base", "building", "--trials", "4")
+    assert_same(flags, body, client, submitted)
+    building = with_trainer_defaults(get_preset("building")).model_dump(mode="json")
+    assert flags["base"]["env"] == building["env"] and flags["base"]["network"] == building["network"]
+    assert flags["base"]["total_steps"] == local("sweep", "--space", "ppo")["base"]["total_steps"]
+    assert flags["study_name"] == "ppo-building" and "algorithm.learning_rate" in flags["space"]
+    bad = httpx.post(f"{live.url}/jobs/sweep", json={"space": "lstm", "base": "building"})
+    assert bad.status_code == 422, bad.text
+    (err,) = bad.json()["detail"]
+    assert err["loc"] == ["body", "base"] and "network.num_layers" in err["msg"], err
+    assert "spaces it takes: ppo, mlp" in err["msg"], err
+    said = runner.invoke(app, ["sweep", "--space", "ppo", "--base", "nope", "--print-config"])
+    assert said.exit_code == 2 and "base: unknown preset 'nope'" in said.output, said.output
+    config = resolve_sweep({"space": "ppo", "total_steps": 131072}).model_dump(mode="json")
+    both = httpx.post(f"{live.url}/jobs/sweep", json={"config": config, "base": "building"})
+    assert both.status_code == 422 and "'base' goes with 'space'" in both.text, both.text
+
+
 def test_sweep__custom_config_with_overrides(live, tmp_path):
     data = resolve_sweep({"space": "ppo", "total_steps": 131072}).model_dump(mode="json")
     data["objective"] = "spl"

@@ -201,9 +201,11 @@ def sweep_body(
     total_steps: int | None,
     overrides: Mapping[str, Any] | None,
     space: str | None = None,
+    base: str | None = None,
 ) -> dict:
-    """The POST /jobs/sweep body: a built-in ``space`` name or a SweepConfig, with overrides (keys
-    of the SweepConfig or of its base TrainConfig). A name passed as ``config`` is a space too."""
+    """The POST /jobs/sweep body: a built-in ``space`` name (and the ``base`` preset its trials
+    start from) or a SweepConfig, with overrides (keys of the SweepConfig or of its base
+    TrainConfig). A name passed as ``config`` is a space too."""
     if isinstance(config, str):
         if space is not None:
             raise ValueError("give the space once: as `space` (its name), not also as `config`")
@@ -212,7 +214,7 @@ def sweep_body(
         raise ValueError("give exactly one of `space` (a built-in space name: ppo, sac, td3, ...)"
                          " or `config` (a SweepConfig dict)")  # fmt: skip
     body: dict[str, Any] = {"space": space} if space is not None else {"config": _as_dict(config)}
-    for key, value in (("trials", trials), ("parallel", parallel), ("total_steps", total_steps)):
+    for key, value in (("base", base), ("trials", trials), ("parallel", parallel), ("total_steps", total_steps)):
         if value is not None:
             body[key] = value
     if overrides:

@@ -223,9 +223,11 @@ class QuickNavClient:
         overrides: Mapping[str, Any] | None = None,
         idempotency_key: str | None = None,
         space: str | None = None,
+        base: str | None = None,
     ) -> Job:
-        """Submit a sweep job: a built-in ``space`` (ppo, lstm, ...) or a SweepConfig ``config``."""
-        body = core.sweep_body(config, trials, parallel, total_steps, overrides, space)
+        """Submit a sweep job: a built-in ``space`` (ppo, lstm, ...), its trials starting from
+        the ``base`` preset (default: the space's paper preset), or a SweepConfig ``config``."""
+        body = core.sweep_body(config, trials, parallel, total_steps, overrides, space, base)
         return self._submit("/jobs/sweep", body, idempotency_key)
 
     def evaluate(
