@@ -246,6 +246,7 @@ def print_eval(result) -> None:
     t.add_row("steps lower bound (oracle path)", f"{m['steps_lower_bound']['mean']:.1f}")
     t.add_row("return, mean ± std", f"{m['return']['mean']:.2f} ± {m['return']['std']:.2f}")
     t.add_row("collisions per episode", f"{m['collisions_per_episode']:.2f}")
+    t.add_row("success without a collision", f"{m['collision_free_success_rate']:.1%}")
     t.add_row("timeout rate", f"{m['timeout_rate']:.1%}")
     p = m["path_length_successes"]
     t.add_row("path length, m (successes), mean ± std", f"{p['mean']:.2f} ± {p['std']:.2f}")

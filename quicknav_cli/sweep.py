@@ -77,7 +77,8 @@ def sweep(
         ),
     ] = None,
     objective: Annotated[
-        str | None, typer.Option(help="success_rate, spl, steps_to_goal, return or collisions.")
+        str | None, typer.Option(help="success_rate, spl, steps_to_goal, return, collisions or"
+                                    " collision_free_success (reached without touching anything).")
     ] = None,
     storage: Annotated[
         str | None,

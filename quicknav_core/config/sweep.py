@@ -118,6 +118,7 @@ METRICS = {
     "steps_to_goal": ("steps_to_goal_failures_as_limit", "minimize"),
     "return": ("return", "maximize"),
     "collisions": ("collisions_per_episode", "minimize"),
+    "collision_free_success": ("collision_free_success_rate", "maximize"),
 }
 
 
@@ -126,9 +127,11 @@ class SweepConfig(StrictModel):
 
     base: TrainConfig
     space: dict[str, ParamSpec] = Field(min_length=1)
-    objective: Literal["success_rate", "spl", "steps_to_goal", "return", "collisions"] = (
-        "success_rate"
-    )
+    objective: Literal[
+        "success_rate", "spl", "steps_to_goal", "return", "collisions", "collision_free_success"
+    ] = Field("success_rate", description="the eval metric the study optimises (collision_free_success:"
+              " the goal reached without a collision, which success_rate does not ask where a"
+              " collision does not end the episode)")  # fmt: skip
     direction: Literal["maximize", "minimize"] | None = None  # default: the metric's natural one
     trials: int = Field(20, ge=1, le=100_000)
     parallel: int = Field(

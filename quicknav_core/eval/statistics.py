@@ -70,6 +70,10 @@ def summarize(ep: Episodes, max_steps: int, step_length: float) -> dict[str, Any
         "steps_to_goal_failures_as_limit": _mean_std(steps_all),
         "return": _mean_std(ep.returns),
         "collisions_per_episode": float(np.mean(ep.collisions)),
+        # the goal reached without touching anything on the way: what a robot owner counts as a
+        # success, and what success_rate alone hides in an env where a collision does not end
+        # the episode (a policy that slides along walls to the goal)
+        "collision_free_success_rate": float(np.mean(ep.success & (ep.collisions == 0))),
         "timeout_rate": float(np.mean(ep.truncated)),
         "spl": spl(ep.success, ep.path_length, ep.reference_length),
         "path_length_successes": _mean_std(ep.path_length[ep.success]),

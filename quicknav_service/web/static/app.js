@@ -292,6 +292,7 @@ function evalTable(metrics) {
     ["Steps to goal (successes)", ms(metrics.steps_to_goal_successes)],
     ["Steps (failures counted as the limit)", ms(metrics.steps_to_goal_failures_as_limit)],
     ["Collisions per episode", num(metrics.collisions_per_episode, 2)],
+    ["Success without a collision", pct(metrics.collision_free_success_rate)],
     ["Timeout rate", pct(metrics.timeout_rate)],
     ["Return", ms(metrics.return)],
   ];

@@ -42,6 +42,8 @@ def test_spl_and_success__hand_made_episodes():
     assert m["steps_to_goal_successes"]["mean"] == 30 and m["steps_to_goal_successes"]["std"] == 10
     assert m["steps_to_goal_failures_as_limit"]["mean"] == pytest.approx((40 + 20 + 300) / 3)
     assert m["collisions_per_episode"] == 2 and m["timeout_rate"] == pytest.approx(1 / 3)
+    # the first success touched a wall on the way: one of three reached the goal cleanly
+    assert m["collision_free_success_rate"] == pytest.approx(1 / 3)
     assert m["return"]["mean"] == 0.0
     # a path shorter than the reference (a rounding artefact) never scores above 1
     assert spl(np.array([True]), np.array([1.9]), np.array([2.0])) == 1.0
