@@ -181,3 +181,19 @@ def test_cli_sweep__config_file(tmp_path):
     assert (tmp_path / "out" / "trials.csv").exists()
     bad = CliRunner().invoke(app, ["sweep", "--preset", "dqn"])
     assert bad.exit_code == 2 and "allowed values" in bad.output
+
+
+def test_objective__collision_free_success_ranks_a_wall_sliding_trial_below_a_clean_one():
+    """`collision_free_success` reads the eval's collision_free_success_rate and is maximised: a
+    trial that reaches more goals by sliding along the walls loses to one that touches nothing,
+    where success_rate would rank them the other way round."""
+    from quicknav_core.sweep import objective_value
+
+    cfg = tiny_sweep(objective="collision_free_success")
+    assert cfg.resolved_direction == "maximize"
+    sliding = {"success_rate": 0.94, "collision_free_success_rate": 0.72}
+    clean = {"success_rate": 0.90, "collision_free_success_rate": 0.88}
+    assert objective_value(sliding, "success_rate") > objective_value(clean, "success_rate")
+    assert objective_value(sliding, cfg.objective) < objective_value(clean, cfg.objective)
+    with pytest.raises(ValidationError, match="collision_free_success"):
+        tiny_sweep(objective="clean")  # the error lists the objectives, the new one among them
