@@ -65,6 +65,10 @@ def scan_arrays(scan: Any, beam_angles: np.ndarray) -> tuple[np.ndarray, np.ndar
         a0, inc = _field(scan, "angle_min"), _field(scan, "angle_increment")
         if a0 is None or inc is None or not ranges.size:
             raise ValueError("scan: needs angle_min, angle_increment and ranges (a ROS LaserScan's fields)")
+        if not (math.isfinite(float(a0)) and math.isfinite(float(inc)) and float(inc) != 0.0):
+            raise ValueError(f"scan: angle_min={float(a0):g}, angle_increment={float(inc):g}: both"
+                             " must be finite and angle_increment non-zero (radians between"
+                             " readings, negative for a clockwise scan)")  # fmt: skip
         angles = float(a0) + float(inc) * np.arange(ranges.size)
         lo, hi = float(_field(scan, "range_min", 0.0) or 0.0), float(_field(scan, "range_max", math.inf))
     return ranges, angles, np.isfinite(ranges) & (ranges >= lo) & (ranges <= hi)
@@ -142,9 +146,19 @@ class Observer:
     def __call__(self, scan: Any, pose: Any, goal: Any = None, plan: Any = None) -> np.ndarray:
         """The policy's observation vector (float32) for a scan, a pose (x, y, theta in the frame
         the goal is in) and a goal; ``plan``: the plan's features (``GridPlanner.features``)."""
-        x, y, theta = (float(v) for v in pose)
+        x, y, theta = _numbers(pose, "pose", 3, "(x, y, yaw): metres and radians")
         if self.observe_goal and goal is None:
             raise ValueError("goal: this policy observes its goal; give goal=(x, y) in metres")
+        if goal is not None:
+            goal = _numbers(goal, "goal", 2, "(x, y) in metres")
+        # what the policy reads in the room frame must be in the room it trained in: a pose or a
+        # goal outside it is no observation it ever saw (and the demo policy, given a goal 300 m
+        # away, drove full speed in reverse)
+        names = self.parts or ["position"] + (["goal_position"] if self.observe_goal else [])
+        if "position" in names:
+            self._inside("pose", (x, y))
+        if goal is not None and "goal_position" in names:
+            self._inside("goal", goal)
         if self.observe_plan and plan is None:
             raise ValueError("plan: this policy follows a global plan; give plan= the plan's features"
                              " (quicknav_client.navigate.GridPlanner.features), or drive it with"
@@ -197,6 +211,27 @@ class Observer:
         if obs.size != self.obs_size:
             raise ValueError(f"built an observation of {obs.size} entries; the policy takes {self.obs_size}")
         return obs
+
+    def _inside(self, what: str, xy) -> None:
+        """Refuse a point outside the room frame the policy observes positions in."""
+        room, slack = self.room_size, 1e-6 * self.room_size
+        if not all(-slack <= v <= room + slack for v in xy):
+            raise ValueError(
+                f"{what}: ({xy[0]:g}, {xy[1]:g}) is outside the room this policy was trained in"
+                f" (0 to {room:g} m on each axis: the room frame, origin at its corner); the policy"
+                f" reads its {'position' if what == 'pose' else 'goal'} in that frame, so give it"
+                " there (for a map's frame, export with --map and drive with Navigator)")
+
+
+def _numbers(values: Any, what: str, size: int, form: str) -> tuple[float, ...]:
+    """``values`` as ``size`` finite floats, or a ValueError naming ``what`` and ``form``."""
+    try:
+        numbers = tuple(float(v) for v in values)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what}: {values!r} is not {size} numbers {form}") from None
+    if len(numbers) != size or not all(map(math.isfinite, numbers)):
+        raise ValueError(f"{what}: {values!r}: give {size} finite numbers {form}")
+    return numbers
 
 
 class OnnxPolicy:

@@ -127,6 +127,31 @@ def test_observer__says_when_the_goal_is_missing():
         Observer(manifest_of(env))(np.ones(env.lidar_beams), (1.0, 1.0, 0.0))
 
 
+def test_observer__a_pose_or_goal_it_cannot_read_is_an_error_never_an_action():
+    """A NaN pose (a failed tf lookup), a goal outside the room the policy reads positions in, or
+    a scan whose angles say nothing: refused, naming what is wrong, instead of wheel speeds (the
+    demo policy drove NaN wheel speeds from a NaN pose, and full reverse towards a goal 300 m off)."""
+    env = EnvConfig(grid_size=8, train_rooms=8, test_rooms=8, lidar_beams=8)  # an 8 m room
+    observe = Observer(manifest_of(env))
+    scan = np.full(8, 2.0)
+    with pytest.raises(ValueError, match=r"pose: \(nan, 1.0, 0.0\): give 3 finite numbers \(x, y, yaw\)"):
+        observe(scan, (float("nan"), 1.0, 0.0), (3.0, 3.0))
+    with pytest.raises(ValueError, match=r"pose: \(1.0, 1.0\): give 3 finite numbers"):
+        observe(scan, (1.0, 1.0), (3.0, 3.0))
+    with pytest.raises(ValueError, match=r"goal: 'far' is not 2 numbers \(x, y\) in metres"):
+        observe(scan, (1.0, 1.0, 0.0), "far")
+    with pytest.raises(ValueError, match=r"goal: \(300, 3\) is outside the room this policy was"
+                                         r" trained in \(0 to 8 m on each axis"):
+        observe(scan, (1.0, 1.0, 0.0), (300.0, 3.0))
+    with pytest.raises(ValueError, match=r"pose: \(-2, 1\) is outside the room"):
+        observe(scan, (-2.0, 1.0, 0.0), (3.0, 3.0))
+    still = LaserScan(angle_min=0.0, angle_increment=0.0, ranges=[2.0] * 8)
+    with pytest.raises(ValueError, match="angle_increment non-zero"):
+        observe(still, (1.0, 1.0, 0.0), (3.0, 3.0))
+    # the room's edges are inside it
+    assert observe(scan, (8.0, 0.0, 0.0), (0.0, 8.0)).shape == (env.obs_dim,)
+
+
 def test_observer__a_return_beyond_the_policys_range_is_no_return():
     """A scanner that sees farther than the policy was trained to read (the building preset reads
     4 m): what lies beyond is no return, as in training, and what lies within is read as is."""
@@ -134,7 +159,7 @@ def test_observer__a_return_beyond_the_policys_range_is_no_return():
     observe = Observer(manifest_of(env))
     scan = LaserScan(angle_min=0.0, angle_increment=math.radians(45), range_max=30.0,
                      ranges=[6.0, 3.0, 4.0, 25.0, 1.0, 4.5, np.inf, 2.0])  # fmt: skip
-    obs = observe(scan, (1.0, 1.0, 0.0), FAR)
+    obs = observe(scan, (1.0, 1.0, 0.0), (7.0, 7.0))  # 8.5 m away: beyond every beam's 4 m
     ranges, wall = obs[4:12], obs[12:20]  # the layout's ranges / max range, then the wall flags
     np.testing.assert_allclose(ranges, [1.0, 0.75, 1.0, 1.0, 0.25, 1.0, 1.0, 0.5])
     np.testing.assert_array_equal(wall, [0, 1, 1, 0, 1, 0, 0, 1])
