@@ -41,7 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from quicknav_client.policy import OnnxPolicy, scan_arrays
+from quicknav_client.policy import OnnxPolicy, finite_numbers, scan_arrays
 from quicknav_client.shield import scan_in_robot_frame, shield_command
 
 f32 = np.float32
@@ -280,7 +280,7 @@ class Navigator:
     def set_goal(self, goal: Any) -> None:
         """A new goal (x, y) in the map frame: plan to it on the map (marks of the last goal
         dropped) and start a new episode."""
-        x, y = float(goal[0]), float(goal[1])
+        x, y = finite_numbers(goal, "goal", 2, "(x, y) in the map frame, metres")
         gx, gy = self._on_map("goal", x, y)
         planner = self.planner if not self.blocked.any() else GridPlanner(self.walls, *self._planner_args)
         if not planner.fits(gx, gy):
@@ -296,7 +296,7 @@ class Navigator:
         """The policy's observation for a scan and a map-frame pose (x, y, yaw)."""
         if self.goal_grid is None:
             raise ValueError("no goal: call set_goal((x, y)) first")
-        x, y, yaw = (float(v) for v in pose)
+        x, y, yaw = finite_numbers(pose, "pose", 3, "(x, y, yaw) in the map frame: metres and radians")
         gx, gy = self._on_map("pose", x, y)
         r, c = self.planner.cell_of(gx, gy)
         if self.walls[r, c]:

@@ -146,11 +146,11 @@ class Observer:
     def __call__(self, scan: Any, pose: Any, goal: Any = None, plan: Any = None) -> np.ndarray:
         """The policy's observation vector (float32) for a scan, a pose (x, y, theta in the frame
         the goal is in) and a goal; ``plan``: the plan's features (``GridPlanner.features``)."""
-        x, y, theta = _numbers(pose, "pose", 3, "(x, y, yaw): metres and radians")
+        x, y, theta = finite_numbers(pose, "pose", 3, "(x, y, yaw): metres and radians")
         if self.observe_goal and goal is None:
             raise ValueError("goal: this policy observes its goal; give goal=(x, y) in metres")
         if goal is not None:
-            goal = _numbers(goal, "goal", 2, "(x, y) in metres")
+            goal = finite_numbers(goal, "goal", 2, "(x, y) in metres")
         # what the policy reads in the room frame must be in the room it trained in: a pose or a
         # goal outside it is no observation it ever saw (and the demo policy, given a goal 300 m
         # away, drove full speed in reverse)
@@ -223,7 +223,7 @@ class Observer:
                 " there (for a map's frame, export with --map and drive with Navigator)")
 
 
-def _numbers(values: Any, what: str, size: int, form: str) -> tuple[float, ...]:
+def finite_numbers(values: Any, what: str, size: int, form: str) -> tuple[float, ...]:
     """``values`` as ``size`` finite floats, or a ValueError naming ``what`` and ``form``."""
     try:
         numbers = tuple(float(v) for v in values)

@@ -132,6 +132,13 @@ def test_navigator__map_frame_poses_and_the_refusals():
         nav.act(np.full(16, 3.0), (ox - 3.0, oy, 0.0))
     with pytest.raises(ValueError, match=rf"goal \({ox:.2f}, {oy + 100:.2f}\) m lies outside the map: {extent}"):
         nav.set_goal((ox, oy + 100.0))
+    # a failed localisation's NaN is named, never driven on
+    with pytest.raises(ValueError, match=r"pose: \(nan, .*\): give 3 finite numbers \(x, y, yaw\) in the map frame"):
+        nav.act(np.full(16, 3.0), (float("nan"), start[1], 0.0))
+    with pytest.raises(ValueError, match=r"pose: .*: give 3 finite numbers"):
+        nav.act(np.full(16, 3.0), (*start, float("inf")))
+    with pytest.raises(ValueError, match=r"goal: \(nan, nan\): give 2 finite numbers"):
+        nav.set_goal((float("nan"), float("nan")))
     wall_r, wall_c = np.nonzero(fit.walls[1:-1, 1:-1])
     in_wall = ((wall_c[0] + 1.5) * fit.cell_m + ox, (wall_r[0] + 1.5) * fit.cell_m + oy)
     with pytest.raises(ValueError, match="lies in a wall cell of the map"):
