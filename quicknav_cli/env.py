@@ -94,7 +94,8 @@ def run_demo(config: EnvConfig, out_dir: Path, policy: str = "oracle", seed: int
 def draw_rooms(
     out: Path, grid_sizes=(4, 8, 16), per_row: int = 5, seed: int = 0, room_size: float = 8.0
 ) -> Path:
-    """The paper's Figure 1: generated rooms for several grid sizes."""
+    """The paper's Figure 1: generated rooms for several grid sizes, written to ``out`` (a PNG;
+    ``.png`` added to a name without a suffix, as the picture is drawn)."""
     from quicknav_core.env import render
     from quicknav_core.env.room_sources import make_room_bank
 
@@ -110,7 +111,8 @@ def draw_rooms(
             max_wheel_speed=min(1.0, room_size / g / 0.1),
         )
         rooms[g] = list(make_room_bank(cfg, "train"))
-    return render.rooms_figure(rooms, room_size, out)
+    out = Path(out)
+    return render.rooms_figure(rooms, room_size, out if out.suffix else out.with_suffix(".png"))
 
 
 @app.command("demo")

@@ -81,6 +81,10 @@ def test_cli_env_rooms__writes_figure(tmp_path):
     result = runner.invoke(app, ["env", "rooms", "--out", str(out), "--per-row", "2"])
     assert result.exit_code == 0, result.output
     assert Image.open(out).size[0] > 300
+    # a name without a suffix gets the PNG's, and the line says the file written (it said "rooms")
+    named = runner.invoke(app, ["env", "rooms", "--out", str(tmp_path / "figure"), "--per-row", "2"])
+    assert named.exit_code == 0 and (tmp_path / "figure.png").is_file(), named.output
+    assert named.output.replace("\n", "").endswith("figure.png"), named.output
 
 
 def test_cli__bad_config_is_reported_with_field_and_range(tmp_path):
