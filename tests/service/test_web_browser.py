@@ -410,6 +410,8 @@ def test_browser__journey_from_the_trained_job_runs_an_eval_reads_its_metrics_an
     shown = success_in_table(page)
     assert shown == pytest.approx(job["result"]["metrics"]["success_rate"], abs=0.0005)
     assert shown >= 0.9, f"the demo policy did not learn: held-out success {shown}"
+    clean = page.locator("#eval-metrics tr", has_text="Success without a collision").locator("td")
+    assert clean.inner_text() == f"{100 * job['result']['metrics']['collision_free_success_rate']:.1f} %"
     assert page.get_attribute("#source-job", "href") == f"/ui/jobs/{job_id}"
     page.locator('#images img[alt="trajectories.png"]').wait_for(timeout=20_000)
     page.screenshot(path=shots / "eval.png", full_page=True)
