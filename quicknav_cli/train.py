@@ -64,6 +64,24 @@ def train_request(
     return {"preset": preset or "demo", "overrides": changes}
 
 
+def holds_run(folder: Path) -> bool:
+    """Whether a folder holds a run already (its config or a checkpoint)."""
+    from quicknav_core.layout import RunFolder
+
+    run = RunFolder(folder)
+    return run.config.exists() or run.checkpoint_folder.exists()
+
+
+def free_folder(default: Path) -> Path:
+    """The default run folder, or, where an earlier run holds it, the first of NAME-2, NAME-3, ...
+    that holds none: a second `quicknav train --preset demo` never trains over the first."""
+    folder, n = default, 1
+    while holds_run(folder):
+        n += 1
+        folder = default.with_name(f"{default.name}-{n}")
+    return folder
+
+
 def train(
     preset: Annotated[
         str | None, typer.Option(help="Preset name (quicknav presets lists them; default demo).")
@@ -78,9 +96,15 @@ def train(
     seed: Annotated[int | None, typer.Option(help="Training seed.")] = None,
     set_: SetOpt = None,
     out: Annotated[
-        Path | None, typer.Option(help="Run folder (default runs/<preset>-s<seed>).")
+        Path | None, typer.Option(help="Run folder (default runs/<preset>-s<seed>, or -2, -3, ..."
+                                  " where an earlier run holds it); one that holds a run is"
+                                  " refused: --resume it, or name another.")
     ] = None,
-    resume: Annotated[Path | None, typer.Option(help="Continue the run in this folder.")] = None,
+    resume: Annotated[
+        Path | None,
+        typer.Option(help="Continue the run in this folder, as its config.json says (no other"
+                     " config options)."),
+    ] = None,
     checkpoint_every: Annotated[int, typer.Option(min=1, help="Checkpoint every N chunks.")] = 1,
     print_only: PrintConfigOpt = False,
 ) -> None:
@@ -90,7 +114,18 @@ def train(
     from quicknav_core.config import resolve_train
     from quicknav_core.train.run import read_config, train_run
 
+    from quicknav_core.layout import RunFolder
+
     if resume is not None:
+        changes = [flag for flag, value in (
+            ("--preset", preset), ("--config", config), ("--algo", algo), ("--network", network),
+            ("--total-steps", total_steps), ("--num-envs", num_envs), ("--seed", seed),
+            ("--set", set_), ("--out", out),
+        ) if value is not None]  # fmt: skip
+        if changes:
+            fail(f"--resume {resume} continues the run as its config.json says, in its folder;"
+                 f" {', '.join(changes)} would change it. To train otherwise, start a new run"
+                 f" (quicknav train --config {RunFolder(resume).config} ... --out NEW)")  # fmt: skip
         try:
             cfg = read_config(resume)
         except FileNotFoundError:
@@ -99,9 +134,13 @@ def train(
     else:
         request = train_request(preset, config, algo, network, total_steps, num_envs, seed, set_)
         cfg = resolved(resolve_train, request)
-        run_dir = (
-            out or Path("runs") / f"{preset or (config.stem if config else 'demo')}-s{cfg.seed}"
+        run_dir = out or free_folder(
+            Path("runs") / f"{preset or (config.stem if config else 'demo')}-s{cfg.seed}"
         )
+        if out is not None and holds_run(out) and not print_only:
+            # training over it would leave its evaluations and exports beside another policy
+            fail(f"--out {out} holds a run already (config.json, checkpoint/): continue it with"
+                 f" --resume {out}, or train into another folder")  # fmt: skip
     if print_only:
         print_config(cfg)
         return
@@ -138,8 +177,15 @@ def train(
                             description="training")  # fmt: skip
             return False
 
+        before = RunFolder(run_dir).meta() if resume is not None else None
         summary = train_run(cfg, run_dir, callback=on_chunk, resume=resume is not None,
                             checkpoint_every=checkpoint_every, runtime=runtime)  # fmt: skip
+    if before is not None and summary["chunks_done"] == before.chunk:
+        console.print(f"nothing left to train: {run_dir} has trained all of its"
+                      f" {summary['env_steps']:,} env steps. To train longer, start a new run:"
+                      f" quicknav train --config {RunFolder(run_dir).config} --total-steps N"
+                      " --out NEW", highlight=False, soft_wrap=True)  # fmt: skip
+        return
     final = summary["final"]
     console.print(
         f"done: {summary['env_steps']:,} env steps; last chunk: return {final.get('mean_return', 0):.1f},"

@@ -2,6 +2,7 @@
 
 import json
 import math
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -235,6 +236,34 @@ def test_cli_train__writes_run_folder_and_resumes(tmp_path):
         assert [v for _, v in board[tag]] == pytest.approx([v for _, v in points], rel=1e-6), tag
     result = CliRunner().invoke(app, ["train", "--resume", str(run)])
     assert result.exit_code == 0, result.output
+    # it had trained all of its steps: said so, not "training ... done"
+    assert "nothing left to train" in result.output and "done:" not in result.output, result.output
+    assert len(read_metrics(run)) == 2
+    # --resume continues the run as its config.json says: an option that would change it is
+    # refused, naming it (it was ignored: --total-steps trained nothing more)
+    longer = CliRunner().invoke(app, ["train", "--resume", str(run), "--total-steps", "16384"])
+    assert longer.exit_code == 2 and "--total-steps would change it" in longer.output, longer.output
+    # training again into the folder would leave its checkpoint, evaluations and exports beside
+    # another policy: refused, pointing at --resume
+    again = CliRunner().invoke(app, args)
+    assert again.exit_code == 2 and f"--out {run} holds a run already" in again.output, again.output
+    assert f"--resume {run}" in again.output and len(read_metrics(run)) == 2
+
+
+def test_cli_train__the_default_folder_never_holds_an_earlier_run(tmp_path, monkeypatch):
+    """Without --out, a second run of the same preset and seed trains into runs/NAME-2, not over
+    the first (whose evaluations and exports would be left beside another policy)."""
+    from quicknav_cli.train import free_folder
+
+    monkeypatch.chdir(tmp_path)
+    first = Path("runs/demo-s0")
+    assert free_folder(first) == first
+    (first / "checkpoint").mkdir(parents=True)
+    assert free_folder(first) == Path("runs/demo-s0-2")
+    Path("runs/demo-s0-2").mkdir()  # an empty folder holds no run
+    assert free_folder(first) == Path("runs/demo-s0-2")
+    (Path("runs/demo-s0-2") / "config.json").write_text("{}")
+    assert free_folder(first) == Path("runs/demo-s0-3")
 
 
 def tensorboard_scalars(folder) -> dict[str, list[tuple[int, float]]]:
