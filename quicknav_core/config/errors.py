@@ -30,10 +30,12 @@ def did_you_mean(name: str, known: Iterable[str]) -> str | None:
     return close[0] if close else None
 
 
-def unknown_field_msg(name: str, where: str, known: Iterable[str]) -> str:
-    """``unknown field 'gird_size' in env; did you mean 'grid_size'? known: ...``."""
+def unknown_field_msg(name: str, where: str, known: Iterable[str], instead: str | None = None) -> str:
+    """``unknown field 'gird_size' in env; did you mean 'grid_size'? known: ...``; ``instead``: the
+    path meant, where the name is a field one level down (``env.lidar_fov_deg`` for
+    ``lidar_fov_deg`` set on a TrainConfig)."""
     known = list(known)
-    close = did_you_mean(name, known)
+    close = instead or did_you_mean(name, known)
     guess = f"; did you mean {close!r}?" if close else ""
     return f"unknown field {name!r} in {where}{guess}{' known' if close else '; known'}: {', '.join(known)}"
 

@@ -67,6 +67,15 @@ def as_dict(overrides: Mapping[str, Any] | Iterable[str] | None) -> dict[str, An
     return parse_assignments(overrides)
 
 
+def _section_with(model: type[BaseModel], name: str) -> str | None:
+    """The section of ``model`` (a field holding a model) that has a field ``name``, if one does:
+    where a field set one level too high belongs."""
+    for section, field in model.model_fields.items():
+        if any(name in m.model_fields for m in _models(field.annotation)):
+            return section
+    return None
+
+
 def _models(annotation: Any) -> list[type[BaseModel]]:
     """The model classes a field can hold: itself, or the model members of a union/Optional."""
     if isinstance(annotation, type) and issubclass(annotation, BaseModel):
@@ -129,7 +138,9 @@ def _set(data: dict, schema: type[BaseModel], key: str, parts: list[str], value:
             return
         if part not in fields:
             where = ".".join(parts[:i]) or schema.__name__
-            raise OverrideError(key, unknown_field_msg(part, where, fields))
+            section = _section_with(model, part)  # the exact name one level down beats a likeness
+            instead = ".".join([*parts[:i], section, *parts[i:]]) if section else None
+            raise OverrideError(key, unknown_field_msg(part, where, fields, instead))
         annotation = fields[part].annotation
         if last and isinstance(value, dict) and _models(annotation):
             # a section given as an object: its keys one by one, the variant's tag first

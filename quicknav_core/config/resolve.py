@@ -18,7 +18,7 @@ from pydantic import AliasChoices, BaseModel, ConfigDict, Field, ValidationError
 
 from quicknav_core.config.base import Flag, Split, StrictModel, exactly_one_of
 from quicknav_core.config.env import EnvConfig, MapsConfig
-from quicknav_core.config.errors import ConfigError, error_items, unknown_field_msg
+from quicknav_core.config.errors import ConfigError, did_you_mean, error_items, unknown_field_msg
 from quicknav_core.config.eval import EvalConfig
 from quicknav_core.config.overrides import OverrideError, _models, override_data
 from quicknav_core.config.presets import PRESETS, get_preset
@@ -344,7 +344,7 @@ def resolve_train(request: TrainRequest | Mapping[str, Any]) -> TrainConfig:
             base = get_preset(req.preset)
         except ValueError:
             raise ConfigError.single(
-                ["preset"], f"unknown preset {req.preset!r}; known: {', '.join(PRESETS)}"
+                ["preset"], f"unknown preset {req.preset!r}{_meant(req.preset, PRESETS)}"
             ) from None
         where = _Where(fallback=["preset"])
     else:
@@ -397,6 +397,13 @@ def resolve_sweep(request: SweepRequest | Mapping[str, Any]) -> SweepConfig:
     return config.model_copy(update={"base": _honoured(config.base, where, ("base",))})
 
 
+def _meant(name: str, known) -> str:
+    """What follows ``unknown preset 'buildin'``: ``; did you mean 'building'? known: ...`` (the
+    guess only for a likely typo)."""
+    close = did_you_mean(name, known)
+    return f"{f'; did you mean {close!r}?' if close else ';'} known: {', '.join(known)}"
+
+
 def _space_base(space: str, preset: str | None) -> TrainConfig:
     """The TrainConfig a built-in space's trials start from: ``preset`` (the request's ``base``)
     or the space's paper preset; refused, naming ``base``, unless it takes every parameter of the
@@ -404,7 +411,7 @@ def _space_base(space: str, preset: str | None) -> TrainConfig:
     if preset is None:
         return get_preset(SPACE_BASE_PRESET[space])
     if preset not in PRESETS:
-        raise ConfigError.single(["base"], f"unknown preset {preset!r}; known: {', '.join(PRESETS)}")
+        raise ConfigError.single(["base"], f"unknown preset {preset!r}{_meant(preset, PRESETS)}")
     config = get_preset(preset)
     missing = _untaken(config, space)
     if missing:

@@ -184,6 +184,17 @@ def test_resolve__unknown_keys_say_what_was_meant():
     with pytest.raises(ConfigError) as e:
         resolve_train({"preset": "demo", "overrides": {"zzzz": 1}})
     assert "did you mean" not in str(e.value) and "known: env, algorithm" in str(e.value)
+    # a field set one level too high (or in the wrong section): the path where it is, exactly,
+    # before any lookalike ('goal_reward' looks like env.goal_radius, and is env.reward's)
+    for key, meant in (("lidar_fov_deg", "env.lidar_fov_deg"), ("learning_rate", "algorithm.learning_rate"),
+                       ("env.goal_reward", "env.reward.goal_reward")):  # fmt: skip
+        with pytest.raises(ConfigError, match=rf"unknown field .*; did you mean '{meant}'\? known:"):
+            resolve_train({"preset": "demo", "overrides": {key: 1}})
+    # a preset's typo, wherever a preset is named
+    with pytest.raises(ConfigError, match=r"unknown preset 'buildin'; did you mean 'building'\? known: demo"):
+        resolve_train({"preset": "buildin"})
+    with pytest.raises(ConfigError, match=r"base: unknown preset 'paperppo'; did you mean 'paper-ppo'\?"):
+        resolve_sweep({"space": "ppo", "base": "paperppo"})
 
 
 # --------------------------------------------------------------------------- traced numbers
