@@ -112,9 +112,8 @@ def train(
     from rich.progress import BarColumn, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
     from quicknav_core.config import resolve_train
-    from quicknav_core.train.run import read_config, train_run
-
     from quicknav_core.layout import RunFolder
+    from quicknav_core.train.run import read_config, train_run
 
     if resume is not None:
         changes = [flag for flag, value in (
