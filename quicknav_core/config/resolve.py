@@ -407,7 +407,7 @@ def _meant(name: str, known) -> str:
 def _space_base(space: str, preset: str | None) -> TrainConfig:
     """The TrainConfig a built-in space's trials start from: ``preset`` (the request's ``base``)
     or the space's paper preset; refused, naming ``base``, unless it takes every parameter of the
-    space (space ppo tunes a PPO preset, lstm an LSTM one, ...) and can be swept (no curriculum)."""
+    space (space ppo tunes a PPO preset, lstm an LSTM one, ...)."""
     if preset is None:
         return get_preset(SPACE_BASE_PRESET[space])
     if preset not in PRESETS:
@@ -420,10 +420,7 @@ def _space_base(space: str, preset: str | None) -> TrainConfig:
         raise ConfigError.single(["base"], f"preset {preset!r} (algorithm {config.algorithm.name},"
                                  f" network {config.network.kind}) has no {', '.join(missing)}"
                                  f" for space {space!r} to tune{hint}")  # fmt: skip
-    if config.curriculum.enabled:
-        raise ConfigError.single(["base"], f"preset {preset!r} trains with a curriculum, which"
-                                 " sweep trials cannot (trials that share shapes run side by side)")  # fmt: skip
-    return config
+    return config  # the rest (no curriculum, ...) SweepConfig checks of every base
 
 
 def _untaken(config: TrainConfig, space: str) -> list[str]:
