@@ -528,6 +528,15 @@ def test_browser__jobs_page_updates_live_cancels_deletes_and_shows_a_sweep(serve
     best = max(trials["trials"], key=lambda t: t["value"])
     assert page.inner_text("#trials tr.best td").strip() == str(best["number"])
     assert page.inner_text("#best-trial").startswith(f"Trial {best['number']}: success_rate")
+    # beside the objective, what each trial's policy did (its collisions too), as trials.json says
+    heads = page.locator("#trials thead th").all_inner_texts()
+    assert heads[2:6] == ["Value (success_rate)", "Success", "Collisions / episode",
+                          "Success without a collision"], heads  # fmt: skip
+    cells = page.locator("#trials tr.best td").all_inner_texts()
+    m = best["metrics"]
+    shown = [float(c.rstrip(" %")) for c in cells[3:6]]
+    assert shown == pytest.approx([100 * m["success_rate"], m["collisions_per_episode"],
+                                   100 * m["collision_free_success_rate"]], abs=0.051), cells  # fmt: skip
     page.locator('#images img[alt="optimization_history.png"]').wait_for(timeout=20_000)
     page.screenshot(path=shots / "sweep.png", full_page=True)
 

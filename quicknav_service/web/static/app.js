@@ -345,12 +345,20 @@ function sweepSection(job, sec) {
       ? h("p", {}, `Trial ${top.number}: ${objective} = ${num(top.value, 4)} with `,
         h("code", {}, Object.entries(top.params).map(([k, v]) => `${k}=${num(v, 4)}`).join("  ")))
       : h("p", { class: "muted" }, "No trial has completed yet."));
+    // beside the objective, what each trial's policy did: a success rate bought with collisions
+    // (a policy that slides along the walls to the goal) shows here, whatever the objective
+    const outcome = [["Success", (m) => pct(m.success_rate)],
+      ["Collisions / episode", (m) => num(m.collisions_per_episode, 2)],
+      ["Success without a collision", (m) => pct(m.collision_free_success_rate)]];
+    const shown = trials.some((t) => t.metrics) ? outcome : [];
     table.replaceChildren(
-      h("thead", {}, h("tr", {}, h("th", {}, "#"), h("th", {}, "State"), h("th", { class: "num" }, "Value"),
+      h("thead", {}, h("tr", {}, h("th", {}, "#"), h("th", {}, "State"), h("th", { class: "num" }, `Value (${objective})`),
+        shown.map(([label]) => h("th", { class: "num" }, label)),
         names.map((n) => h("th", { class: "num" }, n.replace(/^algorithm\./, ""))), h("th", { class: "num" }, "Seconds"),
         h("th", {}, "Error"))),
       h("tbody", {}, trials.map((t) => h("tr", { class: top && t.number === top.number ? "best" : "" },
         h("td", {}, t.number), h("td", {}, t.state.toLowerCase()), h("td", { class: "num" }, num(t.value, 4)),
+        shown.map(([, cell]) => h("td", { class: "num" }, t.metrics ? cell(t.metrics) : "–")),
         names.map((n) => h("td", { class: "num" }, num(t.params[n], 4))),
         h("td", { class: "num" }, num(t.seconds, 1)), h("td", { class: "muted" }, t.error || "")))));
   };
