@@ -177,7 +177,10 @@ def train(
             return False
 
         before = RunFolder(run_dir).meta() if resume is not None else None
-        summary = train_run(cfg, run_dir, callback=on_chunk, resume=resume is not None,
+        if resume is not None and before is None:  # stopped before its first checkpoint
+            console.print(f"{run_dir} has no complete checkpoint yet: training it from the start,"
+                          " as its config.json says", highlight=False, soft_wrap=True)  # fmt: skip
+        summary = train_run(cfg, run_dir, callback=on_chunk, resume=before is not None,
                             checkpoint_every=checkpoint_every, runtime=runtime)  # fmt: skip
     if before is not None and summary["chunks_done"] == before.chunk:
         console.print(f"nothing left to train: {run_dir} has trained all of its"

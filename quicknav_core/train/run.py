@@ -227,6 +227,10 @@ def train_run(
     else:
         (run_dir / CONFIG_FILE).write_text(config.model_dump_json(indent=2))
         (run_dir / METRICS_FILE).write_text("")
+        # an attempt that stopped before its first checkpoint starts again from nothing: its
+        # TensorBoard curve goes with its metrics
+        for stale in run_dir.glob(f"{RUN.tensorboard_prefix}*"):
+            stale.unlink(missing_ok=True)
         trainer = trainer or make_trainer(config, runtime)
         state = trainer.init_state()
         chunk = 0

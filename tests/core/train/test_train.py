@@ -248,6 +248,18 @@ def test_cli_train__writes_run_folder_and_resumes(tmp_path):
     again = CliRunner().invoke(app, args)
     assert again.exit_code == 2 and f"--out {run} holds a run already" in again.output, again.output
     assert f"--resume {run}" in again.output and len(read_metrics(run)) == 2
+    # a run stopped before its first checkpoint (Ctrl-C in the first chunk) trains from the start
+    # as its config says (it was a FileNotFoundError traceback)
+    import shutil
+
+    shutil.rmtree(run / "checkpoint")
+    restarted = CliRunner().invoke(app, ["train", "--resume", str(run)])
+    assert restarted.exit_code == 0, restarted.output
+    assert "no complete checkpoint yet: training it from the start" in restarted.output
+    assert (run / "checkpoint" / "state.msgpack").exists() and len(read_metrics(run)) == 2
+    # its TensorBoard curve is this training's alone, each chunk once
+    assert [s for s, _ in tensorboard_scalars(run)["train/episodes"]] == [
+        r["env_steps"] for r in read_metrics(run)]  # fmt: skip
 
 
 def test_cli_train__the_default_folder_never_holds_an_earlier_run(tmp_path, monkeypatch):
