@@ -48,9 +48,25 @@ def sweep_request(
         if base is not None:
             request["base"] = base
         if space not in BUILTIN_SPACES:
-            fail(f"--space {space!r}: allowed values are {', '.join(BUILTIN_SPACES)}")
+            fail(f"--space {space!r}: allowed values are {', '.join(BUILTIN_SPACES)}{_preset_hint(space)}")
         request["space"] = space
     return request
+
+
+def _preset_hint(name: str | None) -> str:
+    """For a training preset given as a space (the deprecated --preset was the space): the space
+    that starts from it, or one that tunes it with --base."""
+    from quicknav_core.config import PRESETS
+    from quicknav_core.config.resolve import spaces_for
+    from quicknav_core.config.sweep import SPACE_BASE_PRESET
+
+    if name not in PRESETS:
+        return ""
+    own = [space for space, base in SPACE_BASE_PRESET.items() if base == name]
+    if own:
+        return f" ({name!r} is a training preset: --space {own[0]} starts from it)"
+    takes = spaces_for(name)
+    return f" ({name!r} is a training preset: --space {takes[0]} --base {name} tunes it)" if takes else ""
 
 
 def sweep(

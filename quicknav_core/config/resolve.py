@@ -415,12 +415,19 @@ def _space_base(space: str, preset: str | None) -> TrainConfig:
     config = get_preset(preset)
     missing = _untaken(config, space)
     if missing:
-        takes = [other for other in BUILTIN_SPACES if not _untaken(config, other)]
+        takes = spaces_for(preset)
         hint = f"; spaces it takes: {', '.join(takes)}" if takes else ""
         raise ConfigError.single(["base"], f"preset {preset!r} (algorithm {config.algorithm.name},"
                                  f" network {config.network.kind}) has no {', '.join(missing)}"
                                  f" for space {space!r} to tune{hint}")  # fmt: skip
     return config  # the rest (no curriculum, ...) SweepConfig checks of every base
+
+
+def spaces_for(preset: str) -> list[str]:
+    """The built-in spaces that can tune a preset (``SweepRequest.base``): those whose every
+    parameter the preset has."""
+    config = get_preset(preset)
+    return [space for space in BUILTIN_SPACES if not _untaken(config, space)]
 
 
 def _untaken(config: TrainConfig, space: str) -> list[str]:

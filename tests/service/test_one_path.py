@@ -138,6 +138,11 @@ def test_sweep__a_space_on_a_preset_of_the_users_choice(live):
     assert "spaces it takes: ppo, mlp" in err["msg"], err
     said = runner.invoke(app, ["sweep", "--space", "ppo", "--base", "nope", "--print-config"])
     assert said.exit_code == 2 and "base: unknown preset 'nope'" in said.output, said.output
+    # a preset given as the space (the deprecated --preset was the space): which space tunes it
+    for given, hint in (("building", "--space ppo --base building tunes it"),
+                        ("paper-sac", "--space sac starts from it")):  # fmt: skip
+        said = runner.invoke(app, ["sweep", "--space", given, "--print-config"])
+        assert said.exit_code == 2 and hint in said.output.replace("\n", ""), said.output
     config = resolve_sweep({"space": "ppo", "total_steps": 131072}).model_dump(mode="json")
     both = httpx.post(f"{live.url}/jobs/sweep", json={"config": config, "base": "building"})
     assert both.status_code == 422 and "'base' goes with 'space'" in both.text, both.text
