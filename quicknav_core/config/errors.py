@@ -30,14 +30,22 @@ def did_you_mean(name: str, known: Iterable[str]) -> str | None:
     return close[0] if close else None
 
 
+def unknown_msg(what: str, name: str, known: Iterable[str], where: str = "",
+                instead: str | None = None) -> str:  # fmt: skip
+    """``unknown preset 'buildin'; did you mean 'building'? known: ...`` (the guess only for a
+    likely typo, or ``instead``: the name meant, when it is known otherwise)."""
+    known = list(known)
+    close = instead or did_you_mean(name, known)
+    guess = f"; did you mean {close!r}?" if close else ""
+    place = f" in {where}" if where else ""
+    return f"unknown {what} {name!r}{place}{guess}{' known' if close else '; known'}: {', '.join(known)}"
+
+
 def unknown_field_msg(name: str, where: str, known: Iterable[str], instead: str | None = None) -> str:
     """``unknown field 'gird_size' in env; did you mean 'grid_size'? known: ...``; ``instead``: the
     path meant, where the name is a field one level down (``env.lidar_fov_deg`` for
     ``lidar_fov_deg`` set on a TrainConfig)."""
-    known = list(known)
-    close = instead or did_you_mean(name, known)
-    guess = f"; did you mean {close!r}?" if close else ""
-    return f"unknown field {name!r} in {where}{guess}{' known' if close else '; known'}: {', '.join(known)}"
+    return unknown_msg("field", name, known, where, instead)
 
 
 def format_items(items: list[dict[str, Any]], title: str = "", prefix: str = "") -> str:

@@ -18,7 +18,7 @@ from pydantic import AliasChoices, BaseModel, ConfigDict, Field, ValidationError
 
 from quicknav_core.config.base import Flag, Split, StrictModel, exactly_one_of
 from quicknav_core.config.env import EnvConfig, MapsConfig
-from quicknav_core.config.errors import ConfigError, did_you_mean, error_items, unknown_field_msg
+from quicknav_core.config.errors import ConfigError, error_items, unknown_field_msg, unknown_msg
 from quicknav_core.config.eval import EvalConfig
 from quicknav_core.config.overrides import OverrideError, _models, override_data
 from quicknav_core.config.presets import PRESETS, get_preset
@@ -26,8 +26,8 @@ from quicknav_core.config.sweep import (
     BUILTIN_SPACES,
     BUILTIN_TOTAL_STEPS,
     SPACE_BASE_PRESET,
-    ParamSpec,
     SweepConfig,
+    untaken,
 )
 from quicknav_core.config.train import TrainConfig, unhonoured_fields, with_trainer_defaults
 
@@ -344,7 +344,7 @@ def resolve_train(request: TrainRequest | Mapping[str, Any]) -> TrainConfig:
             base = get_preset(req.preset)
         except ValueError:
             raise ConfigError.single(
-                ["preset"], f"unknown preset {req.preset!r}{_meant(req.preset, PRESETS)}"
+                ["preset"], unknown_msg("preset", req.preset, PRESETS)
             ) from None
         where = _Where(fallback=["preset"])
     else:
@@ -397,13 +397,6 @@ def resolve_sweep(request: SweepRequest | Mapping[str, Any]) -> SweepConfig:
     return config.model_copy(update={"base": _honoured(config.base, where, ("base",))})
 
 
-def _meant(name: str, known) -> str:
-    """What follows ``unknown preset 'buildin'``: ``; did you mean 'building'? known: ...`` (the
-    guess only for a likely typo)."""
-    close = did_you_mean(name, known)
-    return f"{f'; did you mean {close!r}?' if close else ';'} known: {', '.join(known)}"
-
-
 def _space_base(space: str, preset: str | None) -> TrainConfig:
     """The TrainConfig a built-in space's trials start from: ``preset`` (the request's ``base``)
     or the space's paper preset; refused, naming ``base``, unless it takes every parameter of the
@@ -411,9 +404,9 @@ def _space_base(space: str, preset: str | None) -> TrainConfig:
     if preset is None:
         return get_preset(SPACE_BASE_PRESET[space])
     if preset not in PRESETS:
-        raise ConfigError.single(["base"], f"unknown preset {preset!r}{_meant(preset, PRESETS)}")
+        raise ConfigError.single(["base"], unknown_msg("preset", preset, PRESETS))
     config = get_preset(preset)
-    missing = _untaken(config, space)
+    missing = list(untaken(config, BUILTIN_SPACES[space]))
     if missing:
         takes = spaces_for(preset)
         hint = f"; spaces it takes: {', '.join(takes)}" if takes else ""
@@ -427,18 +420,7 @@ def spaces_for(preset: str) -> list[str]:
     """The built-in spaces that can tune a preset (``SweepRequest.base``): those whose every
     parameter the preset has."""
     config = get_preset(preset)
-    return [space for space in BUILTIN_SPACES if not _untaken(config, space)]
-
-
-def _untaken(config: TrainConfig, space: str) -> list[str]:
-    """The parameters of a built-in space that ``config`` has no field for."""
-    missing = []
-    for name, spec in BUILTIN_SPACES[space].items():
-        try:
-            override_data(config, {name: ParamSpec.model_validate(spec).probe()})
-        except OverrideError:
-            missing.append(name)
-    return missing
+    return [space for space in BUILTIN_SPACES if not untaken(config, BUILTIN_SPACES[space])]
 
 
 TrainedEnv = Callable[[str], EnvConfig]

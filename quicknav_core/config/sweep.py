@@ -158,12 +158,21 @@ class SweepConfig(StrictModel):
                 "base.curriculum.enabled=true: sweep trials train without the curriculum (trials"
                 " that share shapes run side by side in one program); allowed: false"
             )
-        for name, spec in self.space.items():
-            try:
-                override_data(self.base, {name: spec.probe()})
-            except OverrideError as e:
-                raise ValueError(f"space: unknown parameter {name!r}: {e.message}") from None
+        for name, message in untaken(self.base, self.space).items():
+            raise ValueError(f"space: unknown parameter {name!r}: {message}")
         return self
+
+
+def untaken(base: TrainConfig, space: dict[str, ParamSpec | dict[str, Any]]) -> dict[str, str]:
+    """The parameters of ``space`` that ``base`` has no field for, each with why (a value inside
+    each dimension is set on the base, as a trial would)."""
+    missing = {}
+    for name, spec in space.items():
+        try:
+            override_data(base, {name: ParamSpec.model_validate(spec).probe()})
+        except OverrideError as e:
+            missing[name] = e.message
+    return missing
 
 
 def builtin_space(name: str) -> dict[str, dict[str, Any]]:
