@@ -103,7 +103,9 @@ def map_layer(say: bool = True):
 
     def seen(env, fit) -> None:
         if say:
-            console.print(f"on {fit.path}: grid {fit.grid_size} of {fit.cell_m:g} m cells, step"
+            rows, cols = fit.grid_shape
+            grid = f"{rows}" if rows == cols else f"{rows} x {cols} (rows x cols)"
+            console.print(f"on {fit.path}: grid {grid} of {fit.cell_m:g} m cells, step"
                           f" limit {fit.max_steps} (longest path {fit.longest_path_m:.1f} m)",
                           highlight=False, soft_wrap=True)  # fmt: skip
             if env.obstacles and (env.obstacles.static or env.obstacles.moving):

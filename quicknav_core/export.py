@@ -257,7 +257,7 @@ def map_entry(fit) -> dict[str, Any]:
         "file": MAP_FILE, "source": Path(fit.path).name,
         "walls": "map.npz['walls']: (rows, cols) bool, True = wall; row r spans y in [r, r+1) * cell_m"
                  " of the grid frame, column c spans x",
-        "cell_m": fit.cell_m, "grid": [fit.grid_size, fit.grid_size],
+        "cell_m": fit.cell_m, "grid": list(fit.grid_shape),
         "origin": list(fit.origin),
         "grid_corner_in_map": list(fit.grid_corner_in_map),
         "frame": "poses and goals in the map frame (the YAML's origin frame, as tf2 gives map ->"

@@ -176,7 +176,8 @@ def suggest_env(yaml_path: Path, ref: str, m: OccupancyMap) -> tuple[dict[str, A
         grid = max(math.ceil(x / SUGGESTED_CELL_M - 1e-9) for x in m.size_m) + 2
         return ({"rooms": "maps", "maps": {"train": [ref]}, "grid_size": grid,
                  "room_size": grid * SUGGESTED_CELL_M}, [str(e)])  # fmt: skip
-    suggested = {"rooms": "maps", "maps": {"train": [ref]}, "grid_size": fit.grid_size,
+    shape = {k: v for k, v in fit.shape_fields().items() if v is not None}  # a non-square map's
+    suggested = {"rooms": "maps", "maps": {"train": [ref]}, "grid_size": fit.grid_size, **shape,
                  "room_size": fit.room_size, "max_steps": fit.max_steps}  # fmt: skip
     return suggested, fit.warnings()
 

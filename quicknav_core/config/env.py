@@ -308,10 +308,19 @@ class EnvConfig(StrictModel):
     )
     maps: MapsConfig | None = Field(None, description="the map files (rooms='maps')")
     room_size: float = Field(
-        8.0, gt=0.0, le=1000.0, description="side of the square room, metres", json_schema_extra=TRACED
+        8.0, gt=0.0, le=1000.0, description="side of the square room, metres (of a non-square one, its longer side)", json_schema_extra=TRACED
     )
     grid_size: int = Field(
-        16, ge=GRID_SIZE_RANGE[0], le=GRID_SIZE_RANGE[1], description="cells per side (outer ring is wall)", json_schema_extra=STATIC
+        16, ge=GRID_SIZE_RANGE[0], le=GRID_SIZE_RANGE[1], description="cells per side (outer ring is wall); of a non-square room (grid_rows, grid_cols), its longer side", json_schema_extra=STATIC
+    )
+    grid_rows: int | None = Field(
+        None, ge=GRID_SIZE_RANGE[0], le=GRID_SIZE_RANGE[1], json_schema_extra=STATIC,
+        description="cells along y of a non-square room (rooms='maps': a map's grid follows its"
+        " shape); None: grid_size. One of grid_rows and grid_cols is grid_size, the other at most",
+    )
+    grid_cols: int | None = Field(
+        None, ge=GRID_SIZE_RANGE[0], le=GRID_SIZE_RANGE[1], json_schema_extra=STATIC,
+        description="cells along x of a non-square room; None: grid_size (see grid_rows)",
     )
     carve_fraction: float = Field(
         0.8, gt=0.0, le=1.0, description="fraction of inner cells carved free"
@@ -462,9 +471,17 @@ class EnvConfig(StrictModel):
         return float(f"{self.room_size / self.grid_size:.12g}")
 
     @property
+    def grid_shape(self) -> tuple[int, int]:
+        """(rows, cols) of the room's grid: (grid_size, grid_size) unless ``grid_rows`` or
+        ``grid_cols`` makes it non-square (the cells stay square: room_size / grid_size)."""
+        g = self.grid_size
+        return (self.grid_rows or g, self.grid_cols or g)
+
+    @property
     def inner_cells(self) -> int:
         """Number of cells inside the outer wall ring."""
-        return (self.grid_size - 2) ** 2
+        rows, cols = self.grid_shape
+        return (rows - 2) * (cols - 2)
 
     @property
     def carve_target(self) -> int:
@@ -523,6 +540,7 @@ class EnvConfig(StrictModel):
         self._check_obstacles()
         self._check_plan()
         self._check_source()
+        self._check_shape()
         if self.rooms != "carved":
             return self
         if self.carve_target > self.inner_cells:
@@ -537,6 +555,20 @@ class EnvConfig(StrictModel):
             )
         self._check_carving()
         return self
+
+    def _check_shape(self) -> None:
+        """A non-square grid: maps only (the generators lay square rooms), its longer side is
+        grid_size (room_size / grid_size stays the cell)."""
+        if self.grid_rows is None and self.grid_cols is None:
+            return
+        rows, cols = self.grid_shape
+        if self.rooms != "maps":
+            raise ValueError(f"grid_rows/grid_cols ({rows} x {cols}) apply only with rooms='maps'"
+                             f" (rooms={self.rooms!r} lays square rooms: leave them unset)")  # fmt: skip
+        if max(rows, cols) != self.grid_size:
+            raise ValueError(f"grid_rows={rows}, grid_cols={cols}: the longer side must be"
+                             f" grid_size={self.grid_size}; allowed: one of them {self.grid_size},"
+                             f" the other from {GRID_SIZE_RANGE[0]} to {self.grid_size}")  # fmt: skip
 
     def _check_source(self) -> None:
         """Fields of one room source are refused under another (they would be ignored)."""

@@ -17,10 +17,12 @@ EVAL_BATCH = 256
 PLAN_NODES_AT_ONCE = 2**21
 
 
-def plan_batch(grid_size: int, episodes: int, k: int = 5) -> int:
+def plan_batch(grid: int | tuple[int, int], episodes: int, k: int = 5) -> int:
     """How many episodes' planners run side by side (``jax.lax.map``'s batch): all of them on small
-    grids, fewer as the grid grows, so a planner's memory follows the batch, not the episodes."""
-    return max(1, min(episodes, PLAN_NODES_AT_ONCE // (grid_size * k) ** 2))
+    grids, fewer as the grid grows, so a planner's memory follows the batch, not the episodes.
+    ``grid``: a square's side or (rows, cols)."""
+    rows, cols = (grid, grid) if isinstance(grid, int) else grid
+    return max(1, min(episodes, PLAN_NODES_AT_ONCE // (rows * cols * k * k)))
 
 
 class EvalConfig(StrictModel):

@@ -27,11 +27,11 @@ def reach_cells(radius: float, cell: float) -> int:
 
 
 def disc_fits(walls: np.ndarray, cell: float, radius: float) -> np.ndarray:
-    """(..., g, g) bool: free cells whose centre holds the disc clear of every wall cell."""
+    """(..., rows, cols) bool: free cells whose centre holds the disc clear of every wall cell."""
     fits = ~np.asarray(walls, dtype=bool)
     if narrow(radius, cell):
         return fits
-    g = fits.shape[-1]
+    rows, cols = fits.shape[-2:]
     k = reach_cells(radius, cell)
     padded = np.pad(np.asarray(walls, bool), [(0, 0)] * (fits.ndim - 2) + [(k, k), (k, k)],
                     constant_values=True)  # fmt: skip
@@ -40,12 +40,12 @@ def disc_fits(walls: np.ndarray, cell: float, radius: float) -> np.ndarray:
             # gap from a cell's centre to the cell (dy, dx) away, in metres
             gy, gx = max(abs(dy) - 0.5, 0.0) * cell, max(abs(dx) - 0.5, 0.0) * cell
             if gy * gy + gx * gx < radius * radius:
-                fits &= ~padded[..., k + dy:k + dy + g, k + dx:k + dx + g]
+                fits &= ~padded[..., k + dy:k + dy + rows, k + dx:k + dx + cols]
     return fits
 
 
 def spawn_region(walls: np.ndarray, cell: float, radius: float) -> np.ndarray:
-    """(g, g) bool: the cells starts and goals are drawn in (see the module doc)."""
+    """(rows, cols) bool: the cells starts and goals are drawn in (see the module doc)."""
     fits = disc_fits(walls, cell, radius)
     if narrow(radius, cell):
         return fits
@@ -59,14 +59,14 @@ def spawn_region(walls: np.ndarray, cell: float, radius: float) -> np.ndarray:
 
 
 def spawn_regions(rooms: np.ndarray, cell: float, radius: float) -> np.ndarray:
-    """``spawn_region`` of every room of a bank: (n, g, g) bool."""
+    """``spawn_region`` of every room of a bank: (n, rows, cols) bool."""
     if narrow(radius, cell):
         return ~np.asarray(rooms, dtype=bool)
     return np.stack([spawn_region(r, cell, radius) for r in rooms])
 
 
 def spawn_cells(rooms: np.ndarray, config, split: str) -> np.ndarray:
-    """(n, g, g) bool: where the episodes of each room of a bank start and end. A ValueError
+    """(n, rows, cols) bool: where the episodes of each room of a bank start and end. A ValueError
     names the robot's radius when some room has no two cells it fits in."""
     radius, cell = config.spawn_radius, config.cell_size
     regions = spawn_regions(rooms, cell, radius)

@@ -104,18 +104,20 @@ def disc_overlaps_wall(
     pos: jax.Array, walls: jax.Array, cell: jax.Array | float, radius: jax.Array | float,
     reach: int = 0,
 ) -> jax.Array:
-    """``disc_overlaps_wall_bits`` for a (g, g) bool wall grid."""
+    """``disc_overlaps_wall_bits`` for a (rows, cols) bool wall grid."""
     return disc_overlaps_wall_bits(pos, pack_rows(jnp.asarray(walls, bool)), cell, radius, reach)
 
 
 def wall_distance(pos: jax.Array, row_bits: jax.Array, cell: jax.Array | float) -> jax.Array:
     """Metres from ``pos`` to the nearest wall cell of the 3x3 cells around its own (farther walls
     are at least a cell away: ``cell`` if none is near)."""
-    g = row_bits.shape[0]
+    g, w = row_bits.shape
     rc = jnp.floor(pos[::-1] / cell).astype(jnp.int32)
     off = jnp.array([-1, 0, 1], jnp.int32)
     rows = jnp.clip(rc[0] + off, 0, g - 1)
-    cols = jnp.clip(rc[1] + off, 0, g - 1)
+    # the robot is inside the outer ring, so its neighbours are on the grid; columns are kept to
+    # the packed row's bits (the row does not say how many of them are the room's)
+    cols = jnp.clip(rc[1] + off, 0, 32 * w - 1)
     walls = jax.vmap(lambda r: read_bit(_row_word(row_bits, r), cols))(rows)  # (3, 3)
     y0, x0 = rows.astype(jnp.float32) * cell, cols.astype(jnp.float32) * cell
     gap_y = jnp.maximum(jnp.maximum(y0 - pos[1], pos[1] - (y0 + cell)), 0.0)

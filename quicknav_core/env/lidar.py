@@ -181,7 +181,7 @@ def cast_lidar_bits(
     """
     inv_cell = 1.0 / cell
     px, py = pos[0] * inv_cell, pos[1] * inv_cell
-    g = row_bits.shape[0]
+    g = max(row_bits.shape[0], col_bits.shape[0])  # a non-square room: its longer side
     if lines is not None and lines < g - 1 and g > 32:
         return _cast_window(px, py, theta, pos, goal, col_bits, row_bits, num_beams, fov_deg, cell,
                             max_range, goal_radius, lines)  # fmt: skip
@@ -190,7 +190,7 @@ def cast_lidar_bits(
     paired = lidar_is_paired(num_beams, fov_deg)
     half = num_beams // 2 if paired else num_beams
     dx, dy = beam_directions(theta, num_beams, fov_deg, half)
-    if col_bits.shape[0] <= 32:  # one word of lines: the bit-scan search
+    if g <= 32:  # one word of lines per axis: the bit-scan search
         fwd_v, back_v = _first_walls(px, py, dx, dy, enter_x)
         fwd_h, back_h = _first_walls(py, px, dy, dx, enter_y)
         t_wall = jnp.minimum(fwd_v, fwd_h)
@@ -264,9 +264,10 @@ def _window_crossings(origin_a, origin_b, dir_a, dir_b, k0, entered):
 
 def _cast_window(px, py, theta, pos, goal, col_bits, row_bits, num_beams, fov_deg, cell, max_range,
                  goal_radius, lines):  # fmt: skip
-    """``cast_lidar_bits`` over the ``lines`` lines per axis around the robot (see there)."""
-    kx, enter_x = _window_bits(px, col_bits, lines)
-    ky, enter_y = _window_bits(py, row_bits, lines)
+    """``cast_lidar_bits`` over the ``lines`` lines per axis around the robot (see there); an
+    axis with fewer lines (the short side of a non-square room) takes all of its own."""
+    kx, enter_x = _window_bits(px, col_bits, min(lines, col_bits.shape[0] - 1))
+    ky, enter_y = _window_bits(py, row_bits, min(lines, row_bits.shape[0] - 1))
     paired = lidar_is_paired(num_beams, fov_deg)
     dx, dy = beam_directions(theta, num_beams, fov_deg, num_beams // 2 if paired else num_beams)
     t_v, wall_v = _window_crossings(px, py, dx, dy, kx, enter_x)
@@ -312,8 +313,8 @@ def cast_lidar_dda(
     ``max_range``. Distances are computed from the line index each time, as the crossings method
     does, so no error accumulates along the walk. ``col_bits`` is not read.
     """
-    del col_bits, lines  # the walk ends at max_range by itself
-    g = row_bits.shape[0]
+    rows, cols = row_bits.shape[0], col_bits.shape[0]
+    del col_bits, lines  # only its shape: the walk ends at max_range by itself
     inv_cell = 1.0 / cell
     px, py = pos[0] * inv_cell, pos[1] * inv_cell
     dx, dy = beam_directions(theta, num_beams, fov_deg)
@@ -344,8 +345,8 @@ def cast_lidar_dda(
         cy = jnp.where(~take_x & ~done, cy + step_y, cy)
         lx = jnp.where(take_x & ~done, lx + step_x, lx)
         ly = jnp.where(~take_x & ~done, ly + step_y, ly)
-        rows = row_bits[jnp.clip(cy, 0, g - 1)]  # (B, W): the row word(s) of the entered cell
-        wall = read_bit(rows, jnp.clip(cx, 0, g - 1))
+        words = row_bits[jnp.clip(cy, 0, rows - 1)]  # (B, W): the row word(s) of the entered cell
+        wall = read_bit(words, jnp.clip(cx, 0, cols - 1))
         beyond = t > limit
         hit_now = wall & ~done & ~beyond
         t_hit = jnp.where(hit_now, t, t_hit)
@@ -378,7 +379,7 @@ def cast_lidar(
     method: str = "auto",
     lines: int | None = None,
 ) -> tuple[jax.Array, jax.Array]:
-    """Cast all beams in a (g, g) bool wall grid (packs it first; see ``cast_lidar_bits``)."""
+    """Cast all beams in a (rows, cols) bool wall grid (packs it first; see ``cast_lidar_bits``)."""
     walls = jnp.asarray(walls, bool)
     return cast_lidar_packed(method)(
         pos, theta, goal, pack_rows(walls.T), pack_rows(walls), num_beams, fov_deg, cell,

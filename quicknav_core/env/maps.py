@@ -324,20 +324,23 @@ def _load_yaml(path: Path, unknown_free: bool) -> OccupancyMap:
                         meta={"image": str(image), "negate": negate, "mode": mode})  # fmt: skip
 
 
-def to_cells(m: OccupancyMap, cell: float, grid: int) -> np.ndarray:
-    """The map on a (grid, grid) wall grid with cells of ``cell`` metres (see the module doc)."""
+def to_cells(m: OccupancyMap, cell: float, grid: int | tuple[int, int]) -> np.ndarray:
+    """The map on a (rows, cols) wall grid (``grid``: a square's side or (rows, cols)) with cells
+    of ``cell`` metres (see the module doc)."""
+    rows, cols = (grid, grid) if isinstance(grid, int) else grid
     width_m, height_m = m.size_m
-    inner = grid - 2
     need_x, need_y = math.ceil(width_m / cell - 1e-9), math.ceil(height_m / cell - 1e-9)
-    if need_x > inner or need_y > inner:
+    if need_x > cols - 2 or need_y > rows - 2:
         side = max(need_x, need_y) + 2
+        held = (f"grid_size={rows} holds {rows - 2} x {rows - 2}" if rows == cols else
+                f"grid_rows x grid_cols = {rows} x {cols} holds {cols - 2} x {rows - 2}")  # fmt: skip
         raise MapError(
             f"{m.path}: the map is {width_m:g} m x {height_m:g} m, {need_x} x {need_y} cells of"
-            f" {cell:g} m (room_size / grid_size) plus the outer wall; grid_size={grid} holds"
-            f" {inner} x {inner}. Set grid_size >= {side} with room_size = grid_size x {cell:g} m"
-            f" (= {side * cell:g} m), or a larger cell size (room_size / grid_size)"
+            f" {cell:g} m (room_size / grid_size) plus the outer wall; {held}. Set grid_size >="
+            f" {side} with room_size = grid_size x {cell:g} m (= {side * cell:g} m), or a larger"
+            " cell size (room_size / grid_size)"
         )
-    walls = np.ones((grid, grid), dtype=bool)
+    walls = np.ones((rows, cols), dtype=bool)
     walls[1:1 + need_y, 1:1 + need_x] = False
     h, w = m.blocked.shape
     ys, xs = np.nonzero(m.blocked)
@@ -375,8 +378,8 @@ def reachable_only(walls: np.ndarray, path: str) -> tuple[np.ndarray, float]:
     return out, 1.0 - sizes[keep - 1] / sizes.sum()
 
 
-def map_room(path: str | Path, cell: float, grid: int, **read: Any) -> np.ndarray:
-    """A map file as one room of the bank: (grid, grid) bool, True = wall."""
+def map_room(path: str | Path, cell: float, grid: int | tuple[int, int], **read: Any) -> np.ndarray:
+    """A map file as one room of the bank: (rows, cols) bool (``to_cells``), True = wall."""
     m = load_map(path, **read)
     walls, _ = reachable_only(to_cells(m, cell, grid), m.path)
     return walls

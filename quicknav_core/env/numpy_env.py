@@ -117,21 +117,22 @@ def cast_lidar_np(
     goal_radius: float,
 ) -> tuple[np.ndarray, np.ndarray]:
     """All beams at once over every grid-line crossing, vectorised. (ranges f32 (B,), hits int32)."""
-    g = walls.shape[0]
+    rows, cols = walls.shape
     cell = f32(cell)
     # the heading rotated by each beam's offset, as the JAX env computes it
     ca, sa = np.cos(angles.astype(np.float64)).astype(f32), np.sin(angles.astype(np.float64)).astype(f32)
     ct, st = f32(np.cos(f32(theta))), f32(np.sin(f32(theta)))
     dx, dy = (ct * ca - st * sa).astype(f32), (st * ca + ct * sa).astype(f32)
-    k = np.arange(1, g, dtype=f32)
-
     def nearest(o_a, o_b, d_a, d_b, vertical):
+        # vertical lines x = k * cell (k < cols), crossed at a row; horizontal ones y = k * cell
+        lines, across = (cols, rows) if vertical else (rows, cols)
+        k = np.arange(1, lines, dtype=f32)
         d_safe = np.where(np.abs(d_a) < 1e-12, f32(1e-12), d_a).astype(f32)
         t = ((k[None, :] * cell - o_a) * (f32(1.0) / d_safe)[:, None]).astype(f32)
         forward = d_a[:, None] > 0
         line = np.where(forward, k.astype(np.int64)[None, :], k.astype(np.int64)[None, :] - 1)
         b = (o_b + t * d_b[:, None]).astype(f32)
-        other = np.clip(np.floor(b / cell).astype(np.int64), 0, g - 1)
+        other = np.clip(np.floor(b / cell).astype(np.int64), 0, across - 1)
         is_wall = walls[other, line] if vertical else walls[line, other]
         hit = is_wall & (t >= 0)
         return np.where(hit, t, _BIG).min(axis=1)
@@ -196,15 +197,15 @@ def perturb_scan_np(
 def disc_overlaps_wall_np(pos: np.ndarray, walls: np.ndarray, cell: float, radius: float) -> bool:
     """Whether a disc at ``pos`` overlaps a wall; only the cells within ``reach_cells`` of its own
     can (the 3x3 around it for a robot narrower than a cell)."""
-    g = walls.shape[0]
+    rows, cols = walls.shape
     cell = f32(cell)
     k = reach_cells(float(radius), float(cell))
-    n = min(2 * k + 1, g)
+    n_r, n_c = min(2 * k + 1, rows), min(2 * k + 1, cols)
     row, col = (np.floor(pos[::-1] / cell)).astype(np.int64)
-    r0, c0 = int(np.clip(row - k, 0, g - n)), int(np.clip(col - k, 0, g - n))
-    block = walls[r0 : r0 + n, c0 : c0 + n]
-    y0 = (np.arange(r0, r0 + n).astype(f32) * cell).astype(f32)
-    x0 = (np.arange(c0, c0 + n).astype(f32) * cell).astype(f32)
+    r0, c0 = int(np.clip(row - k, 0, rows - n_r)), int(np.clip(col - k, 0, cols - n_c))
+    block = walls[r0 : r0 + n_r, c0 : c0 + n_c]
+    y0 = (np.arange(r0, r0 + n_r).astype(f32) * cell).astype(f32)
+    x0 = (np.arange(c0, c0 + n_c).astype(f32) * cell).astype(f32)
     gap_y = np.maximum(np.maximum(y0 - pos[1], pos[1] - (y0 + cell)), f32(0.0))
     gap_x = np.maximum(np.maximum(x0 - pos[0], pos[0] - (x0 + cell)), f32(0.0))
     dist2 = gap_y[:, None] ** 2 + gap_x[None, :] ** 2
@@ -215,12 +216,12 @@ def place_obstacles_np(u: np.ndarray, config, free_cells: np.ndarray, walls: np.
                        start: np.ndarray, goal: np.ndarray) -> dict[str, np.ndarray]:  # fmt: skip
     """``env.obstacles.place`` in NumPy from (N, OBSTACLE_WORDS) uniforms in [0, 1)."""
     o = config.obstacles
-    n, g = o.count, walls.shape[0]
+    n, (rows, cols) = o.count, walls.shape
     f = free_cells[np.minimum(np.floor(u[:, 0] * free_cells.size).astype(np.int64), free_cells.size - 1)]
-    r, c = f // g, f % g
+    r, c = f // cols, f % cols
     opened = np.ones(n, bool)
     for dr, dc in NEIGHBOURS:
-        opened &= ~walls[np.clip(r + dr, 0, g - 1), np.clip(c + dc, 0, g - 1)]
+        opened &= ~walls[np.clip(r + dr, 0, rows - 1), np.clip(c + dc, 0, cols - 1)]
     moving = np.arange(n) >= o.static
     lo = np.where(moving, o.moving_radius_m[0], o.static_radius_m[0]).astype(f32)
     hi = np.where(moving, o.moving_radius_m[1], o.static_radius_m[1]).astype(f32)
@@ -284,9 +285,9 @@ class QuickNavNumpyEnv(gym.Env):
         elif rooms is not None:
             # a given bank (e.g. the JAX env's ``params.rooms``): reset picks from these rooms
             rooms = np.asarray(rooms, dtype=bool)
-            g = self.config.grid_size
-            if rooms.ndim != 3 or rooms.shape[1:] != (g, g):
-                raise ValueError(f"rooms has shape {rooms.shape}; expected (n, {g}, {g})")
+            rows, cols = self.config.grid_shape
+            if rooms.ndim != 3 or rooms.shape[1:] != (rows, cols):
+                raise ValueError(f"rooms has shape {rooms.shape}; expected (n, {rows}, {cols})")
             self._rooms = dict(enumerate(rooms))
             self._bank_size = len(rooms)
         else:  # the config's room source (carved rooms: carved here with NumPy, room by room)
@@ -310,7 +311,7 @@ class QuickNavNumpyEnv(gym.Env):
         c = self.config
         rng = self.np_random
         walls = self.room(int(rng.integers(self._bank_size)))
-        g = c.grid_size
+        g = c.grid_shape[1]  # flat cell indices: row * cols + col
         # where the disc fits and can drive (every free cell for a robot narrower than a cell)
         free = np.flatnonzero(spawn_region(walls, float(self._cell), self._spawn_radius).reshape(-1))
         s = int(rng.integers(free.size))
@@ -402,14 +403,14 @@ class QuickNavNumpyEnv(gym.Env):
         episode's ``obstacles`` (a dict of pos, vel, radius or the JAX env's ``state.obstacles``;
         default: none present)."""
         walls = np.asarray(walls, dtype=bool)
-        g = self.config.grid_size
-        if walls.shape != (g, g):
-            raise ValueError(
-                f"walls has shape {walls.shape}; expected ({g}, {g}) for grid_size={g}"
-            )
+        shape = self.config.grid_shape
+        if walls.shape != shape:
+            raise ValueError(f"walls has shape {walls.shape}; expected {shape} for grid_size="
+                             f"{self.config.grid_size}" + ("" if shape[0] == shape[1] else
+                             f", grid_rows={shape[0]}, grid_cols={shape[1]}"))  # fmt: skip
         pos = np.asarray(pos, f32).reshape(2)
         cell = (np.floor(pos[::-1] / self._cell)).astype(np.int64)
-        visited = np.zeros((g, g), bool)
+        visited = np.zeros(shape, bool)
         visited[cell[0], cell[1]] = True
         self._state = {
             "walls": walls,
@@ -425,7 +426,7 @@ class QuickNavNumpyEnv(gym.Env):
             "obstacles": self._obstacles(obstacles),
         }
         if self.config.observe_plan:  # the episode's global plan on the known map
-            goal_rc = np.clip(np.floor(self._state["goal"][::-1] / self._cell).astype(np.int64), 0, g - 1)
+            goal_rc = self._cell_of(self._state["goal"])
             self._state["plan"] = cell_field_np(self._usable(), goal_rc)
         self._cast()
         return self._obs()
@@ -475,8 +476,7 @@ class QuickNavNumpyEnv(gym.Env):
                 pos, collided = pos0, True
             self._walk(obstacles, pos, radius)
 
-        g = c.grid_size
-        cell = np.clip(np.floor(pos[::-1] / self._cell).astype(np.int64), 0, g - 1)
+        cell = self._cell_of(pos)
         entered = bool(np.any(cell != s["cell"]))
         seen = bool(s["visited"][cell[0], cell[1]])
         revisit = entered and seen
@@ -588,9 +588,10 @@ class QuickNavNumpyEnv(gym.Env):
 
     def _clearance(self, pos: np.ndarray) -> np.float32:
         """Metres from the robot's edge to the nearest wall (of the 3x3 cells around it) or obstacle."""
-        s, g, cell = self._state, self.config.grid_size, self._cell
+        s, (n_rows, n_cols), cell = self._state, self.config.grid_shape, self._cell
         rc = np.floor(pos[::-1] / cell).astype(np.int64)
-        rows, cols = np.clip(rc[0] + np.array([-1, 0, 1]), 0, g - 1), np.clip(rc[1] + np.array([-1, 0, 1]), 0, g - 1)
+        rows = np.clip(rc[0] + np.array([-1, 0, 1]), 0, n_rows - 1)
+        cols = np.clip(rc[1] + np.array([-1, 0, 1]), 0, n_cols - 1)
         y0, x0 = (rows.astype(f32) * cell).astype(f32), (cols.astype(f32) * cell).astype(f32)
         gy = np.maximum(np.maximum(y0 - pos[1], pos[1] - (y0 + cell)), f32(0.0))
         gx = np.maximum(np.maximum(x0 - pos[0], pos[0] - (x0 + cell)), f32(0.0))
@@ -606,13 +607,18 @@ class QuickNavNumpyEnv(gym.Env):
 
     def _path_left(self, pos: np.ndarray) -> np.float32:
         """``env.plan.path_length_from`` on the plan at cell resolution: metres to the goal."""
-        s, g = self._state, self.config.grid_size
+        s, (n_rows, n_cols) = self._state, self.config.grid_shape
         metres = (s["plan"] * self._cell).astype(f32)
         rc = np.floor(pos[::-1] / self._cell).astype(np.int64)
-        rows = np.repeat(np.clip(rc[0] + np.array([-1, 0, 1]), 0, g - 1), 3)
-        cols = np.tile(np.clip(rc[1] + np.array([-1, 0, 1]), 0, g - 1), 3)
+        rows = np.repeat(np.clip(rc[0] + np.array([-1, 0, 1]), 0, n_rows - 1), 3)
+        cols = np.tile(np.clip(rc[1] + np.array([-1, 0, 1]), 0, n_cols - 1), 3)
         centres = ((np.stack([cols, rows], axis=-1).astype(f32) + f32(0.5)) * self._cell).astype(f32)
         return f32(np.min(np.linalg.norm(centres - pos, axis=-1).astype(f32) + metres[rows, cols]))
+
+    def _cell_of(self, pos: np.ndarray) -> np.ndarray:
+        """(row, col) of the cell holding ``pos``, clipped to the grid."""
+        rc = np.floor(pos[::-1] / self._cell).astype(np.int64)
+        return np.clip(rc, 0, np.asarray(self.config.grid_shape) - 1)
 
     def _usable(self) -> np.ndarray:
         s = self._state

@@ -50,18 +50,20 @@ def obstacle_numbers(config) -> ObstacleRanges | None:
 
 def place(ranges: ObstacleRanges, bits: jax.Array, n_static: int, n_moving: int,
           free_cells: jax.Array, n_free: jax.Array, row_bits: jax.Array, cell, start: jax.Array,
-          goal: jax.Array) -> Obstacles:  # fmt: skip
+          goal: jax.Array, cols: int | None = None) -> Obstacles:  # fmt: skip
     """The obstacles of one episode from ``OBSTACLE_WORDS * (n_static + n_moving)`` random words
-    (see the module doc); ``free_cells`` / ``n_free``: the room's spawn cells."""
+    (see the module doc); ``free_cells`` / ``n_free``: the room's spawn cells, flat indices
+    ``row * cols + col`` (``cols`` None: as many as rows, a square)."""
     n = n_static + n_moving
     g = row_bits.shape[0]
+    cols = g if cols is None else cols
     u = uniform_from_bits(bits).reshape(n, OBSTACLE_WORDS)
     pick = jnp.minimum(jnp.floor(u[:, 0] * n_free).astype(jnp.int32), n_free - 1)
     flat = free_cells[pick]
-    r, c = flat // g, flat % g
+    r, c = flat // cols, flat % cols
     opened = jnp.ones((n,), bool)
     for dr, dc in _DIRS:
-        rr, cc = jnp.clip(r + dr, 0, g - 1), jnp.clip(c + dc, 0, g - 1)
+        rr, cc = jnp.clip(r + dr, 0, g - 1), jnp.clip(c + dc, 0, cols - 1)
         opened = opened & ~read_bit(row_bits[rr], cc)
     moving = jnp.arange(n) >= n_static
     lo = jnp.where(moving, ranges.moving_radius[0], ranges.static_radius[0])

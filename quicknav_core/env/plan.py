@@ -9,6 +9,10 @@ neighbours until nothing changes (Bellman-Ford on the grid graph, a ``while_loop
 vmappable across rooms). Paths on an 8-connected grid are octile paths, at most ~8 % longer than
 the true shortest path; with k = 5 (10 cm nodes on the default room; an odd k puts a node on every cell's centre line, so one-cell corridors keep their full clearance) that is the reference length
 used for SPL, minus the goal radius (an episode succeeds on entering the goal disc).
+
+A room's grid may be non-square (rows x cols, ``EnvConfig.grid_shape``); its cells are square and
+``room_size`` is its longer side, so a cell is ``room_size / max(rows, cols)``. The packed rows do
+not say how many columns a row has: ``cols`` does (None: as many as rows, a square).
 """
 
 from __future__ import annotations
@@ -25,30 +29,36 @@ INF = 1e9
 _NEIGHBOURS = ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (1, -1), (-1, 1), (-1, -1))
 
 
-def node_positions(grid_size: int, room_size: float | jax.Array, k: int) -> jax.Array:
-    """(n, n, 2) x, y of every node, n = grid_size * k."""
-    n = grid_size * k
-    h = room_size / n
-    centres = (jnp.arange(n, dtype=jnp.float32) + 0.5) * h
-    xs, ys = jnp.meshgrid(centres, centres)  # xs varies along columns
-    return jnp.stack([xs, ys], axis=-1)
+def _shape(grid: int | tuple[int, int]) -> tuple[int, int]:
+    return (grid, grid) if isinstance(grid, int) else (int(grid[0]), int(grid[1]))
 
 
-def usable_nodes(row_bits: jax.Array, room_size, radius, k: int, reach: int = 0) -> jax.Array:
-    """(n, n) bool: the disc fits at the node (``disc_overlaps_wall_bits`` at every node, same
-    arithmetic). Computed on the unpacked grid with whole-array gathers: per-node reads of the
-    packed rows would hold a (nodes, g, words) selection at once, gigabytes on a large map."""
+def node_positions(grid: int | tuple[int, int], room_size: float | jax.Array, k: int) -> jax.Array:
+    """(rows * k, cols * k, 2) x, y of every node (``grid``: a square's side or (rows, cols))."""
+    rows, cols = _shape(grid)
+    h = room_size / (max(rows, cols) * k)
+    xs, ys = jnp.meshgrid((jnp.arange(cols * k, dtype=jnp.float32) + 0.5) * h,
+                          (jnp.arange(rows * k, dtype=jnp.float32) + 0.5) * h)  # fmt: skip
+    return jnp.stack([xs, ys], axis=-1)  # xs varies along columns
+
+
+def usable_nodes(row_bits: jax.Array, room_size, radius, k: int, reach: int = 0,
+                 cols: int | None = None) -> jax.Array:  # fmt: skip
+    """(rows * k, cols * k) bool: the disc fits at the node (``disc_overlaps_wall_bits`` at every
+    node, same arithmetic). Computed on the unpacked grid with whole-array gathers: per-node reads
+    of the packed rows would hold a (nodes, g, words) selection at once, gigabytes on a large map."""
     g = row_bits.shape[0]
-    cell = room_size / g
+    cols = g if cols is None else cols
+    cell = room_size / max(g, cols)
     pad = max(reach, 1)
     # columns beyond the grid read as free (as ``read_bit`` past the row's bits); rows beyond it
     # repeat the nearest row (as the clipped row index does)
-    walls = jnp.pad(unpack_rows(row_bits, g), ((0, 0), (pad, pad)), constant_values=False)
-    pts = node_positions(g, room_size, k)
+    walls = jnp.pad(unpack_rows(row_bits, cols), ((0, 0), (pad, pad)), constant_values=False)
+    pts = node_positions((g, cols), room_size, k)
     x, y = pts[..., 0], pts[..., 1]
 
     def wall(r, c):
-        return walls[jnp.clip(r, 0, g - 1), jnp.clip(c, -pad, g - 1 + pad) + pad]
+        return walls[jnp.clip(r, 0, g - 1), jnp.clip(c, -pad, cols - 1 + pad) + pad]
 
     if reach:
         col, row = jnp.floor(x / cell).astype(jnp.int32), jnp.floor(y / cell).astype(jnp.int32)
@@ -118,65 +128,64 @@ def distance_field(usable: jax.Array, seeds: jax.Array, step: float | jax.Array)
     return d
 
 
-def nearest_nodes(pos, n: int, h) -> tuple[jax.Array, jax.Array]:
-    """The 3x3 block of node indices around ``pos`` (rows (9,), cols (9,)), clipped to the grid."""
+def nearest_nodes(pos, n: int | tuple[int, int], h) -> tuple[jax.Array, jax.Array]:
+    """The 3x3 block of node indices around ``pos`` (rows (9,), cols (9,)), clipped to the
+    (n_rows, n_cols) nodes (``n``: a square's side)."""
+    n_rows, n_cols = _shape(n)
     rc = jnp.floor(pos[::-1] / h).astype(jnp.int32)
     off = jnp.array([-1, 0, 1], jnp.int32)
-    rows = jnp.repeat(jnp.clip(rc[0] + off, 0, n - 1), 3)
-    cols = jnp.tile(jnp.clip(rc[1] + off, 0, n - 1), 3)
+    rows = jnp.repeat(jnp.clip(rc[0] + off, 0, n_rows - 1), 3)
+    cols = jnp.tile(jnp.clip(rc[1] + off, 0, n_cols - 1), 3)
     return rows, cols
 
 
-def goal_field(row_bits, goal, room_size, radius, k: int, reach: int = 0) -> tuple[jax.Array, jax.Array]:
-    """(distance field to the goal point (n, n), usable (n, n))."""
+def goal_field(row_bits, goal, room_size, radius, k: int, reach: int = 0, cols: int | None = None
+               ) -> tuple[jax.Array, jax.Array]:  # fmt: skip
+    """(distance field to the goal point (rows * k, cols * k), usable (the same))."""
     g = row_bits.shape[0]
-    n = g * k
-    h = room_size / n
-    usable = usable_nodes(row_bits, room_size, radius, k, reach)
-    nodes = node_positions(g, room_size, k)
-    rows, cols = nearest_nodes(goal, n, h)
-    dist = jnp.linalg.norm(nodes[rows, cols] - goal, axis=-1)
-    seeds = jnp.full((n, n), INF).at[rows, cols].min(jnp.where(usable[rows, cols], dist, INF))
+    cols = g if cols is None else cols
+    h = room_size / (max(g, cols) * k)
+    usable = usable_nodes(row_bits, room_size, radius, k, reach, cols)
+    nodes = node_positions((g, cols), room_size, k)
+    rows, cs = nearest_nodes(goal, usable.shape, h)
+    dist = jnp.linalg.norm(nodes[rows, cs] - goal, axis=-1)
+    seeds = jnp.full(usable.shape, INF).at[rows, cs].min(jnp.where(usable[rows, cs], dist, INF))
     return distance_field(usable, seeds, h), usable
 
 
 def path_length_from(field: jax.Array, pos, room_size, k: int) -> jax.Array:
     """Shortest path length from a point: best of the nearby nodes (straight hop + their distance)."""
-    n = field.shape[0]
-    h = room_size / n
-    rows, cols = nearest_nodes(pos, n, h)
+    h = room_size / max(field.shape)
+    rows, cols = nearest_nodes(pos, field.shape, h)
     centres = (jnp.stack([cols, rows], axis=-1).astype(jnp.float32) + 0.5) * h
     return jnp.min(jnp.linalg.norm(centres - pos, axis=-1) + field[rows, cols])
 
 
 def shortest_path_length(
-    row_bits, start, goal, room_size, radius, goal_radius, k: int = 5, reach: int = 0
+    row_bits, start, goal, room_size, radius, goal_radius, k: int = 5, reach: int = 0,
+    cols: int | None = None,
 ) -> jax.Array:
     """Reference length of an episode: shortest disc path from ``start`` into the goal disc.
 
     Returns INF-sized values (>= 1e8) if the goal cannot be reached.
     """
-    field, _ = goal_field(row_bits, goal, room_size, radius, k, reach)
+    field, _ = goal_field(row_bits, goal, room_size, radius, k, reach, cols)
     return jnp.maximum(path_length_from(field, start, room_size, k) - goal_radius, 0.0)
 
 
 def greedy_path(field: jax.Array, usable: jax.Array, start_node: tuple[int, int], max_len: int):
     """Node sequence obtained by always stepping to the neighbour with the smallest distance."""
-    n = field.shape[0]
+    n_rows, n_cols = field.shape
 
     def step(node, _):
         r, c = node
         best = (field[r, c], r, c)
         cand = []
         for dr, dc in _NEIGHBOURS:
-            rr, cc = jnp.clip(r + dr, 0, n - 1), jnp.clip(c + dc, 0, n - 1)
+            rr, cc = jnp.clip(r + dr, 0, n_rows - 1), jnp.clip(c + dc, 0, n_cols - 1)
             ok = usable[rr, cc]
             if dr and dc:
-                ok = (
-                    ok
-                    & usable[jnp.clip(r + dr, 0, n - 1), c]
-                    & usable[r, jnp.clip(c + dc, 0, n - 1)]
-                )
+                ok = ok & usable[rr, c] & usable[r, cc]
             cand.append((jnp.where(ok, field[rr, cc], INF), rr, cc))
         for d, rr, cc in cand:
             better = d < best[0]
@@ -196,7 +205,7 @@ def greedy_path(field: jax.Array, usable: jax.Array, start_node: tuple[int, int]
 
 # --------------------------------------------------------------------------- the env's global plan
 def disc_fits(walls: jax.Array, cell, radius, reach: int) -> jax.Array:
-    """(g, g) bool: free cells whose centre holds the disc clear of every wall cell (all free cells
+    """(rows, cols) bool: free cells whose centre holds the disc clear of every wall cell (all free cells
     for a robot narrower than a cell, ``reach`` 0); ``clearance.disc_fits`` in JAX."""
     fits = ~walls
     if reach == 0:
@@ -210,7 +219,7 @@ def disc_fits(walls: jax.Array, cell, radius, reach: int) -> jax.Array:
 
 
 def cell_field(usable: jax.Array, goal_rc: jax.Array) -> jax.Array:
-    """(g, g) float32: the shortest 8-connected path (no corner cutting) from every usable cell to
+    """(rows, cols) float32: the shortest 8-connected path (no corner cutting) from every usable cell to
     the goal's cell, in cells (``INF``-sized where the goal cannot be reached)."""
     seeds = jnp.full(usable.shape, INF, jnp.float32).at[goal_rc[0], goal_rc[1]].set(0.0)
     return distance_field(usable, seeds, 1.0)

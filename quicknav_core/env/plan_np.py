@@ -14,16 +14,16 @@ NEIGHBOURS = ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (1, -1), (-1, 1), (-1, -
 
 def greedy_path_np(field: np.ndarray, usable: np.ndarray, start, steps: int) -> np.ndarray:
     """``env.plan.greedy_path``: (steps, 2) cells down the field, never up (ties: the first)."""
-    n = field.shape[0]
+    n_rows, n_cols = field.shape
     r, c = int(start[0]), int(start[1])
     out = np.zeros((steps, 2), np.int64)
     for i in range(steps):
         best, br, bc = field[r, c], r, c
         for dr, dc in NEIGHBOURS:
-            rr, cc = min(max(r + dr, 0), n - 1), min(max(c + dc, 0), n - 1)
+            rr, cc = min(max(r + dr, 0), n_rows - 1), min(max(c + dc, 0), n_cols - 1)
             ok = usable[rr, cc]
             if dr and dc:
-                ok = ok and usable[min(max(r + dr, 0), n - 1), c] and usable[r, min(max(c + dc, 0), n - 1)]
+                ok = ok and usable[rr, c] and usable[r, cc]
             d = field[rr, cc] if ok else _INF
             if d < best:
                 best, br, bc = d, rr, cc

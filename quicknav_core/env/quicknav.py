@@ -92,7 +92,8 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         self.config = config
         # where the room banks come from (the env never asks which source it is)
         self.rooms = rooms if rooms is not None else room_source(config)
-        self.grid_size = config.grid_size
+        self.grid_size = config.grid_size  # cell = room_size / grid_size
+        self.rows, self.cols = config.grid_shape  # the room's grid (square unless a map's is not)
         self.num_beams = config.lidar_beams
         self.observe_goal = config.observe_goal
         self.final_obs = config.final_obs
@@ -207,14 +208,15 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
             perturbation = at_rest(params.robot_radius)
         elif not self.randomized and perturbation is not None:
             raise ValueError("perturbation given, but this env is not randomised (EnvConfig.randomize)")
-        g = self.grid_size
         walls = jnp.asarray(walls, bool)
-        if walls.shape != (g, g):
+        if walls.shape != (self.rows, self.cols):
             raise ValueError(
-                f"walls has shape {walls.shape}; expected ({g}, {g}) for grid_size={g}"
+                f"walls has shape {walls.shape}; expected ({self.rows}, {self.cols}) for"
+                f" grid_size={self.grid_size}" + ("" if self.rows == self.cols else
+                                                  f", grid_rows={self.rows}, grid_cols={self.cols}")
             )
         pos = jnp.asarray(pos, jnp.float32).reshape(2)
-        rc = jnp.clip(jnp.floor(pos[::-1] / (params.room_size / g)).astype(jnp.int32), 0, g - 1)
+        rc = self._cell_of(pos, params.room_size / self.grid_size)
         state = self._episode_start(
             pos, theta, goal, pack_rows(walls.T), pack_rows(walls), jnp.int32(room_index), rc,
             perturbation,
@@ -269,12 +271,11 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
 
     def state_space(self, params: EnvParams | None = None) -> spaces.Dict:
         """Not used by trainers; provided for completeness of the gymnax API."""
-        g = self.grid_size
         return spaces.Dict(
             {
                 "pos": spaces.Box(0.0, self.config.room_size, (2,), jnp.float32),
                 "theta": spaces.Box(-jnp.pi, jnp.pi, (), jnp.float32),
-                "walls": spaces.Box(0, 1, (g, g), jnp.bool_),
+                "walls": spaces.Box(0, 1, (self.rows, self.cols), jnp.bool_),
             }
         )
 
@@ -283,6 +284,15 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         return 2
 
     # ------------------------------------------------------------------ step phases
+    def _cell_of(self, pos: jax.Array, cell) -> jax.Array:
+        """(row, col) int32 of the cell holding ``pos``, clipped to the grid."""
+        rc = jnp.floor(pos[::-1] / cell).astype(jnp.int32)
+        return jnp.clip(rc, 0, jnp.array([self.rows - 1, self.cols - 1], jnp.int32))
+
+    def _flat_rc(self, flat: jax.Array) -> jax.Array:
+        """(row, col) of flat cell indices (row * cols + col), stacked on the first axis."""
+        return jnp.stack([flat // self.cols, flat % self.cols])
+
     def spawn(self, key: jax.Array, params: EnvParams) -> EnvState:
         """A fresh episode (lidar not yet cast): room, start pose and the farthest goal candidate."""
         g, k = self.grid_size, self.config.goal_candidates
@@ -304,14 +314,14 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         # Start: a uniformly chosen free cell, uniformly placed where the disc clears the cell walls.
         s = jnp.minimum(jnp.floor(u_start * n_free).astype(jnp.int32), n_free - 1)
         start = params.free_cells[room, s]
-        start_rc = jnp.stack([start // g, start % g])
+        start_rc = self._flat_rc(start)
         slack = jnp.maximum(0.5 * cell - radius, 0.0)
         pos = (start_rc[::-1].astype(jnp.float32) + 0.5) * cell + (2.0 * jitter_u - 1.0) * slack
         # Goal: the farthest of K free cells drawn from the cells other than the start cell.
         j = jnp.minimum(jnp.floor(u_goal * (n_free - 1)).astype(jnp.int32), n_free - 2)
         j = j + (j >= s).astype(jnp.int32)
         cand = params.free_cells[room, j]
-        cand_xy = (jnp.stack([cand % g, cand // g], axis=-1).astype(jnp.float32) + 0.5) * cell
+        cand_xy = (self._flat_rc(cand)[::-1].T.astype(jnp.float32) + 0.5) * cell
         goal = cand_xy[jnp.argmax(jnp.sum((cand_xy - pos) ** 2, axis=-1))]
         theta = (2.0 * u_head - 1.0) * jnp.pi
         state = self._episode_start(
@@ -330,7 +340,7 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         return state.replace(obstacles=place(
             params.obstacles, bits, c.static, c.moving, params.free_cells[room],
             params.num_free[room], state.row_bits, params.room_size / self.grid_size, state.pos,
-            state.goal,
+            state.goal, self.cols,
         ))  # fmt: skip
 
     def _spawn_from_pool(
@@ -343,10 +353,10 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         count = jnp.clip(jnp.asarray(params.pool_count, jnp.int32), 1, params.pool_room.shape[0])
         i = jnp.minimum(jnp.floor(u_pick * count).astype(jnp.int32), count - 1)
         room, start, goal_cell = params.pool_room[i], params.pool_start[i], params.pool_goal[i]
-        start_rc = jnp.stack([start // g, start % g])
+        start_rc = self._flat_rc(start)
         slack = jnp.maximum(0.5 * cell - radius, 0.0)
         pos = (start_rc[::-1].astype(jnp.float32) + 0.5) * cell + (2.0 * jitter_u - 1.0) * slack
-        goal = (jnp.stack([goal_cell % g, goal_cell // g]).astype(jnp.float32) + 0.5) * cell
+        goal = (self._flat_rc(goal_cell)[::-1].astype(jnp.float32) + 0.5) * cell
         theta = (2.0 * u_head - 1.0) * jnp.pi
         return self._episode_start(
             pos, theta, goal, params.room_col_bits[room], params.room_row_bits[room], room, start_rc,
@@ -357,7 +367,7 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         self, pos, theta, goal, col_bits, row_bits, room_index, start_rc, perturbation=None
     ) -> EnvState:
         """The state at an episode's first step (lidar not yet cast, only the start cell visited)."""
-        g, b = self.grid_size, self.num_beams
+        rows, cols, b = self.rows, self.cols, self.num_beams
         return EnvState(
             pos=jnp.asarray(pos, jnp.float32).reshape(2),
             theta=jnp.asarray(theta, jnp.float32),
@@ -366,7 +376,7 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
             row_bits=row_bits,
             room_index=jnp.asarray(room_index, jnp.int32),
             visited_bits=set_bit(
-                jnp.zeros((g, num_words(g)), jnp.uint32), start_rc[0], start_rc[1]
+                jnp.zeros((rows, num_words(cols)), jnp.uint32), start_rc[0], start_rc[1]
             ),
             cell=jnp.asarray(start_rc, jnp.int32),
             cycle_count=jnp.int32(0),
@@ -376,7 +386,7 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
             time=jnp.int32(0),
             perturbation=perturbation,
             # planned by ``with_plan`` (a placeholder until then, so every state has one shape)
-            plan=jnp.zeros((g, g), jnp.float32) if self.config.observe_plan else None,
+            plan=jnp.zeros((rows, cols), jnp.float32) if self.config.observe_plan else None,
             # placed by ``with_obstacles`` (none until then)
             obstacles=absent(self.obstacle_count) if self.obstacle_count else None,
         )
@@ -403,7 +413,7 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
             hit = overlaps(pos, radius, obstacles)
             pos, collided = jnp.where(hit, state.pos, pos), collided | hit
             obstacles = move_obstacles(obstacles, state.row_bits, cell, params.dt, pos, radius)
-        rc = jnp.clip(jnp.floor(pos[::-1] / cell).astype(jnp.int32), 0, g - 1)
+        rc = self._cell_of(pos, cell)
         entered = jnp.any(rc != state.cell)
         seen = read_bit(state.visited_bits[rc[0]], rc[1])
         revisit = entered & seen
@@ -484,7 +494,7 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
 
     # ------------------------------------------------------------------ the global plan
     def _plan_usable(self, state: EnvState, params: EnvParams) -> jax.Array:
-        """(g, g) bool: the cells the disc's centre may pass on the known map."""
+        """(rows, cols) bool: the cells the disc's centre may pass on the known map."""
         radius = params.robot_radius if state.perturbation is None else state.perturbation.robot_radius
         return disc_fits(state.walls, params.room_size / self.grid_size, radius, self.reach)
 
@@ -493,9 +503,7 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         shortest path length from every cell to the goal's cell on the room's known map."""
         if not self.config.observe_plan:
             return state
-        g = self.grid_size
-        goal_rc = jnp.clip(jnp.floor(state.goal[::-1] / (params.room_size / g)).astype(jnp.int32),
-                           0, g - 1)  # fmt: skip
+        goal_rc = self._cell_of(state.goal, params.room_size / self.grid_size)
         return state.replace(plan=cell_field(self._plan_usable(state, params), goal_rc))
 
     def plan_observation(self, state: EnvState, params: EnvParams) -> jax.Array:

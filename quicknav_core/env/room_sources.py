@@ -79,19 +79,21 @@ class RoomSource:
     def key(self, split: Split) -> str:
         """What the ``split`` bank depends on, as a file-name-safe digest."""
         c = self.config
-        parts = [GENERATOR_VERSION, self.name, check_split(split), c.grid_size, c.room_seed,
+        # a non-square grid adds its shape (a square one keeps the keys banks were stored under)
+        shape = [list(c.grid_shape)] if c.grid_shape != (c.grid_size, c.grid_size) else []
+        parts = [GENERATOR_VERSION, self.name, check_split(split), c.grid_size, *shape, c.room_seed,
                  c.train_rooms, c.test_rooms, *self.own_key(split)]  # fmt: skip
         return hashlib.sha256(json.dumps(parts).encode()).hexdigest()[:32]
 
     def bank(self, split: Split) -> np.ndarray:
-        """The ``split`` bank: (rooms, grid, grid) bool, True = wall (built once per runtime)."""
+        """The ``split`` bank: (rooms, rows, cols) bool (``EnvConfig.grid_shape``), True = wall
+        (built once per runtime)."""
         key = self.key(split)
         return self.runtime.banks.get(("bank", key), lambda: self._load_or_build(split, key))
 
     def _load_or_build(self, split: Split, key: str) -> np.ndarray:
-        g = self.config.grid_size
         path = self._disk_path(split, key)
-        bank = _read_bank(path, (self.count(split), g, g)) if path is not None else None
+        bank = _read_bank(path, (self.count(split), *self.config.grid_shape)) if path is not None else None
         if bank is None:
             train = self.bank("train") if split == "test" and self.test_skips_train else None
             bank = np.ascontiguousarray(self.generate(split, train), dtype=bool)
@@ -226,7 +228,7 @@ class MapRooms(RoomSource):
         for name in self.files(split):
             path = self.path(name)
             try:
-                out.append(map_room(path, self.config.cell_size, self.config.grid_size,
+                out.append(map_room(path, self.config.cell_size, self.config.grid_shape,
                                     **self.read_options()))  # fmt: skip
             except MapError as e:  # name a stored map by its id, not by the file it was read from
                 raise MapError(str(e).replace(str(path), name)) if str(path) != name else e from None
@@ -252,7 +254,7 @@ def room_source(config: EnvConfig, runtime: Runtime | None = None) -> RoomSource
 
 
 def make_room_bank(config: EnvConfig, split: Split, runtime: Runtime | None = None) -> np.ndarray:
-    """The ``split`` bank of a config's room source: (rooms, grid, grid) bool, True = wall."""
+    """The ``split`` bank of a config's room source: (rooms, rows, cols) bool, True = wall."""
     return room_source(config, runtime).bank(check_split(split))
 
 
@@ -268,9 +270,10 @@ def check_rooms(config: EnvConfig, runtime: Runtime | None = None) -> None:
 
 
 def free_cell_table(rooms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Flat indices of the free cells of every room, padded: ((n, g*g) int32, (n,) int32 counts)."""
-    n, g, _ = rooms.shape
-    flat_free = ~rooms.reshape(n, g * g)
+    """Flat indices (row * cols + col) of the free cells of every room, padded: ((n, rows*cols)
+    int32, (n,) int32 counts)."""
+    n, rows, cols = rooms.shape
+    flat_free = ~rooms.reshape(n, rows * cols)
     counts = flat_free.sum(axis=1).astype(np.int32)
     # Stable argsort puts free cells (key 0) first in increasing index order.
     order = np.argsort(~flat_free, axis=1, kind="stable").astype(np.int32)

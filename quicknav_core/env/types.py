@@ -69,10 +69,10 @@ class EnvState:
     pos: jax.Array  # (2,) float32 robot centre (x, y) in metres
     theta: jax.Array  # () float32 heading in radians, in [-pi, pi)
     goal: jax.Array  # (2,) float32 goal centre (x, y) in metres
-    col_bits: jax.Array  # (grid, W) uint32 walls packed by column: bit r of col c = walls[r, c]
-    row_bits: jax.Array  # (grid, W) uint32 walls packed by row: bit c of row r = walls[r, c]
+    col_bits: jax.Array  # (cols, Wr) uint32 walls packed by column: bit r of col c = walls[r, c]
+    row_bits: jax.Array  # (rows, Wc) uint32 walls packed by row: bit c of row r = walls[r, c]
     room_index: jax.Array  # () int32 index of the room in the bank (-1: loaded by hand)
-    visited_bits: jax.Array  # (grid, W) uint32 row-packed cells entered so far this episode
+    visited_bits: jax.Array  # (rows, Wc) uint32 row-packed cells entered so far this episode
     cell: jax.Array  # (2,) int32 (row, col) of the cell holding the robot centre
     cycle_count: jax.Array  # () int32 C_t: steps this episode that re-entered a visited cell
     collisions: jax.Array  # () int32 wall collisions so far this episode
@@ -81,7 +81,7 @@ class EnvState:
     time: jax.Array  # () int32 steps taken this episode
     # the episode's randomisation draws (None: the env is not randomised, ``EnvConfig.randomize``)
     perturbation: Perturbation | None = None
-    # the global plan (``EnvConfig.observe_plan``; None otherwise): (grid, grid) float32 shortest
+    # the global plan (``EnvConfig.observe_plan``; None otherwise): (rows, cols) float32 shortest
     # path length from every cell to the goal's cell, in cells, on the known map (env.plan)
     plan: jax.Array | None = None
     # obstacles the map does not show (``EnvConfig.obstacles``; None without them)
@@ -89,13 +89,13 @@ class EnvState:
 
     @property
     def walls(self) -> jax.Array:
-        """(..., grid, grid) bool, walls[row, col], row = y index, col = x index."""
-        return unpack_rows(self.row_bits, self.row_bits.shape[-2])
+        """(..., rows, cols) bool, walls[row, col], row = y index, col = x index."""
+        return unpack_rows(self.row_bits, self.col_bits.shape[-2])
 
     @property
     def visited(self) -> jax.Array:
-        """(..., grid, grid) bool cells entered so far this episode."""
-        return unpack_rows(self.visited_bits, self.visited_bits.shape[-2])
+        """(..., rows, cols) bool cells entered so far this episode."""
+        return unpack_rows(self.visited_bits, self.col_bits.shape[-2])
 
 
 @struct.dataclass
@@ -103,10 +103,10 @@ class EnvParams:
     """Traced parameters: numbers and the room bank. Changing them never recompiles."""
 
     # Room bank (shapes fixed per bank)
-    rooms: jax.Array  # (rooms, grid, grid) bool
-    room_col_bits: jax.Array  # (rooms, grid, W) uint32 column-packed walls
-    room_row_bits: jax.Array  # (rooms, grid, W) uint32 row-packed walls
-    free_cells: jax.Array  # (rooms, grid*grid) int32 flat indices of free cells, padded
+    rooms: jax.Array  # (rooms, rows, cols) bool
+    room_col_bits: jax.Array  # (rooms, cols, Wr) uint32 column-packed walls
+    room_row_bits: jax.Array  # (rooms, rows, Wc) uint32 row-packed walls
+    free_cells: jax.Array  # (rooms, rows*cols) int32 flat indices (row * cols + col) of free cells, padded
     num_free: jax.Array  # (rooms,) int32 number of valid entries in free_cells
     # Geometry and robot
     room_size: jax.Array | float = 8.0
@@ -135,7 +135,7 @@ class EnvParams:
     # Sorted by the oracle's path length (shortest first); resets draw from the first
     # ``pool_count`` entries.
     pool_room: jax.Array | None = None  # (P,) int32 room index in the bank
-    pool_start: jax.Array | None = None  # (P,) int32 flat start cell (row * grid + col)
+    pool_start: jax.Array | None = None  # (P,) int32 flat start cell (row * cols + col)
     pool_goal: jax.Array | None = None  # (P,) int32 flat goal cell
     pool_count: jax.Array | int = 0  # episodes of the pool in use (the curriculum's level)
     # Sensor and actuator randomisation (``env.perturb``; None: the env is not randomised)

@@ -43,7 +43,7 @@ def dwa_action(plan, pos, theta, goal, ranges, hits, *, beams: int, fov_deg: flo
     t_safe, ok_safe = _pursuit_target(f_safe, u_safe, pos, room_size, CARROT_NODES)
     t_exact, ok_exact = _pursuit_target(f_exact, u_exact, pos, room_size, CARROT_NODES)
     carrot = jnp.where(ok_safe, t_safe, jnp.where(ok_exact, t_exact, goal))
-    near_goal = jnp.linalg.norm(goal - pos) < goal_radius + CARROT_NODES * room_size / f_safe.shape[0]
+    near_goal = jnp.linalg.norm(goal - pos) < goal_radius + CARROT_NODES * room_size / max(f_safe.shape)
     carrot = jnp.where(near_goal, goal, carrot)
 
     # the lidar's returns (walls and the obstacles the map does not show) as points

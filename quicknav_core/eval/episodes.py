@@ -80,9 +80,9 @@ def _episodes_program(env, agent: Agent, batch: int, gif: int, deterministic: bo
         ref = jax.lax.map(
             lambda a: shortest_path_length(
                 a[0], a[1], a[2], params.room_size, params.robot_radius, params.goal_radius,
-                reach=env.reach,
+                reach=env.reach, cols=env.cols,
             ),
-            (states.row_bits, states.pos, states.goal), batch_size=plan_batch(env.grid_size, n),
+            (states.row_bits, states.pos, states.goal), batch_size=plan_batch(env.config.grid_shape, n),
         )
         agent_state = agent.init(env, params, states, payload)
         start = jnp.ones((n,), bool)

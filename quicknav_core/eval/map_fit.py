@@ -31,9 +31,9 @@ class MapFit:
     """One map at one cell size."""
 
     path: str
-    grid_size: int
+    grid_size: int  # the grid's longer side
     cell_m: float
-    walls: np.ndarray  # (grid, grid) bool, the room the env drives (outer ring and islands wall)
+    walls: np.ndarray  # (rows, cols) bool, the room the env drives (outer ring and islands wall)
     origin: tuple[float, float]  # the map frame's (x, y) of the map's lower-left pixel corner
     free_kept: float  # share of the map's free area the grid keeps free (0..1)
     longest_path_m: float  # the longest shortest path between two cells the robot fits in
@@ -42,6 +42,16 @@ class MapFit:
     @property
     def room_size(self) -> float:
         return self.grid_size * self.cell_m
+
+    @property
+    def grid_shape(self) -> tuple[int, int]:
+        """(rows, cols): the map's extent in cells plus the outer ring, not a square around it."""
+        return self.walls.shape
+
+    def shape_fields(self) -> dict[str, int | None]:
+        """``EnvConfig``'s grid_rows and grid_cols for this grid (None for a square)."""
+        rows, cols = self.grid_shape
+        return {"grid_rows": None, "grid_cols": None} if rows == cols else {"grid_rows": rows, "grid_cols": cols}
 
     @property
     def grid_corner_in_map(self) -> tuple[float, float]:
@@ -56,7 +66,7 @@ class MapFit:
         from quicknav_core.config.env import FloorplanConfig
 
         maps = {**(reading or {}), "train": [map_name], "test": None}
-        return {"rooms": "maps", "maps": maps, "grid_size": self.grid_size,
+        return {"rooms": "maps", "maps": maps, "grid_size": self.grid_size, **self.shape_fields(),
                 "room_size": self.room_size, "max_steps": self.max_steps,
                 "floorplan": FloorplanConfig().model_dump(mode="json")}  # fmt: skip
 
@@ -78,14 +88,16 @@ def fit_map(env: EnvConfig, path: str | Path, read: dict[str, Any] | None = None
     m = loaded if loaded is not None else load_map(path, **read)
     cell = env.cell_size
     width_m, height_m = m.size_m
-    side = max(math.ceil(width_m / cell - 1e-9), math.ceil(height_m / cell - 1e-9)) + 2
+    rows, cols = math.ceil(height_m / cell - 1e-9) + 2, math.ceil(width_m / cell - 1e-9) + 2
+    side = max(rows, cols, GRID_SIZE_RANGE[0])
+    rows, cols = max(rows, GRID_SIZE_RANGE[0]), max(cols, GRID_SIZE_RANGE[0])
     if side > MAX_GRID:
         raise MapError(f"{m.path}: the map is {width_m:g} m x {height_m:g} m: at the env's"
                        f" {cell:g} m cells (cell_size; a policy's are those it trained with) that is"
                        f" a grid of {side}, above the {MAX_GRID} an env may have; crop the map to"
                        " the part the robot drives, or use cells of at least"
                        f" {max(width_m, height_m) / (MAX_GRID - 2):.2f} m")  # fmt: skip
-    walls, _ = reachable_only(to_cells(m, cell, side), m.path)
+    walls, _ = reachable_only(to_cells(m, cell, (rows, cols)), m.path)
     free_area = float((~m.blocked).sum()) * m.resolution**2
     kept = float((~walls).sum()) * cell * cell / free_area if free_area > 0 else 0.0
     longest = longest_path_cells(walls, cell, env.spawn_radius) * cell
@@ -103,13 +115,13 @@ def longest_path_cells(walls: np.ndarray, cell: float, radius: float) -> float:
     from scipy.sparse.csgraph import dijkstra
 
     usable = disc_fits(walls, cell, radius)
-    g = usable.shape[0]
-    index = np.arange(g * g).reshape(g, g)
+    rows, cols = usable.shape
+    index = np.arange(rows * cols).reshape(rows, cols)
     src, dst, cost = [], [], []
     for dr, dc in ((1, 0), (0, 1), (1, 1), (1, -1)):
         r, c = np.nonzero(usable)
         rr, cc = r + dr, c + dc
-        inside = (rr >= 0) & (rr < g) & (cc >= 0) & (cc < g)
+        inside = (rr >= 0) & (rr < rows) & (cc >= 0) & (cc < cols)
         r, c, rr, cc = r[inside], c[inside], rr[inside], cc[inside]
         ok = usable[rr, cc]
         if dr and dc:
@@ -118,7 +130,7 @@ def longest_path_cells(walls: np.ndarray, cell: float, radius: float) -> float:
         dst.append(index[rr[ok], cc[ok]])
         cost.append(np.full(int(ok.sum()), math.sqrt(2.0) if dr and dc else 1.0))
     graph = csr_matrix((np.concatenate(cost), (np.concatenate(src), np.concatenate(dst))),
-                       shape=(g * g, g * g))  # fmt: skip
+                       shape=(rows * cols, rows * cols))  # fmt: skip
     start = int(index[usable][0])
     far = 0.0
     for _ in range(2):

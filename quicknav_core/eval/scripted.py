@@ -42,9 +42,9 @@ class OracleAgent(Agent):
 
     def init(self, env, params, states, payload):
         plan = lambda a: oracle_plan(a[0], a[1], params.room_size, params.robot_radius,  # noqa: E731
-                                     reach=env.reach)  # fmt: skip
+                                     reach=env.reach, cols=env.cols)  # fmt: skip
         n = states.pos.shape[0]  # a few episodes at a time: the fields are (grid * 5)^2 nodes each
-        return jax.lax.map(plan, (states.row_bits, states.goal), batch_size=plan_batch(env.grid_size, n))
+        return jax.lax.map(plan, (states.row_bits, states.goal), batch_size=plan_batch(env.config.grid_shape, n))
 
     def act(self, plans, obs, states, start, key, deterministic, payload):
         act = jax.vmap(

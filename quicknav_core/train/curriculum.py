@@ -69,19 +69,21 @@ def draw_episodes(rooms: np.ndarray, config: EnvConfig, per_room: int, seed: int
     return room, start.astype(np.int32), goal.astype(np.int32)
 
 
-def path_lengths(params: EnvParams, room, start, goal, grid: int, reach: int = 0) -> np.ndarray:
+def path_lengths(params: EnvParams, room, start, goal, grid: tuple[int, int], reach: int = 0
+                 ) -> np.ndarray:  # fmt: skip
     """The oracle planner's shortest path (metres) from each start cell's centre to its goal
     cell's centre, less the goal radius: its distance field (``env.plan.distance_field``)
-    on the cell grid, seeded at the goal cell alone."""
+    on the cell grid (``grid``: (rows, cols)), seeded at the goal cell alone."""
     from quicknav_core.env.plan import distance_field, usable_nodes
 
-    cell = float(params.room_size) / grid
+    rows, cols = grid
+    cell = float(params.room_size) / max(rows, cols)
 
     def one(row_bits, s, g_):
-        usable = usable_nodes(row_bits, params.room_size, params.robot_radius, PLANNER_K, reach)
-        seeds = jnp.full((grid, grid), 1e9).at[g_ // grid, g_ % grid].set(0.0)
+        usable = usable_nodes(row_bits, params.room_size, params.robot_radius, PLANNER_K, reach, cols)
+        seeds = jnp.full((rows, cols), 1e9).at[g_ // cols, g_ % cols].set(0.0)
         field = distance_field(usable, seeds, cell)
-        return jnp.maximum(field[s // grid, s % grid] - params.goal_radius, 0.0)
+        return jnp.maximum(field[s // cols, s % cols] - params.goal_radius, 0.0)
 
     measure = jax.jit(lambda bits, r, s, g_: jax.vmap(one)(bits[r], s, g_))
     out = []
@@ -98,7 +100,7 @@ def make_pool(params: EnvParams, config: EnvConfig, curriculum: CurriculumConfig
     """The sorted pool of a bank (``params.rooms``) and its level counts."""
     rooms = np.asarray(params.rooms)
     room, start, goal = draw_episodes(rooms, config, curriculum.episodes_per_room, seed)
-    length = path_lengths(params, room, start, goal, rooms.shape[-1], config.collision_reach)
+    length = path_lengths(params, room, start, goal, rooms.shape[1:], config.collision_reach)
     order = np.argsort(length, kind="stable")
     length = length[order]
     counts = [int(np.searchsorted(length, f * config.room_size, side="left")) for f in curriculum.levels]

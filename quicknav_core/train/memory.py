@@ -103,8 +103,9 @@ def _words(g: int) -> int:
 def bank_bytes(env: EnvConfig, split: str = "train") -> int:
     """The room banks of a split: a generated test bank is made beside the train bank it must
     avoid; a map's test bank repeats the map alone (``MapRooms``, no train bank built)."""
-    g = env.grid_size
-    per_room = g * g + 2 * g * _words(g) * 4 + g * g * 4 + 4
+    rows, cols = env.grid_shape
+    # bool walls, row- and column-packed bits, the free-cell table, its count
+    per_room = rows * cols + (rows * _words(cols) + cols * _words(rows)) * 4 + rows * cols * 4 + 4
     if split == "test":
         rooms = env.test_rooms + (0 if env.rooms == "maps" else env.train_rooms)
     else:
@@ -115,9 +116,10 @@ def bank_bytes(env: EnvConfig, split: str = "train") -> int:
 def env_state_bytes(env: EnvConfig) -> int:
     """One env's state (bit-packed walls and visits, pose, lidar, counters and, for a policy that
     follows the plan, the plan's distance field over the grid)."""
-    g = env.grid_size
-    plan = g * g * 4 if env.observe_plan else 0
-    return 3 * g * _words(g) * 4 + env.lidar_beams * 8 + 64 + plan
+    rows, cols = env.grid_shape
+    plan = rows * cols * 4 if env.observe_plan else 0
+    packed = (2 * rows * _words(cols) + cols * _words(rows)) * 4  # walls by row and column, visits
+    return packed + env.lidar_beams * 8 + 64 + plan
 
 
 def network_params(cfg: TrainConfig) -> int:
@@ -176,12 +178,12 @@ def eval_memory(cfg: EvalConfig) -> Estimate:
     env = cfg.env or EnvConfig()
     steps = env.max_steps + 1
     batch = min(cfg.episodes, EVAL_BATCH)
-    nodes = (env.grid_size * 5) ** 2  # the planner's refined grid (``planning``, k = 5)
+    nodes = env.grid_shape[0] * env.grid_shape[1] * 25  # the planner's refined grid (k = 5)
     planner = nodes * (4 * 2 + 1) * 3  # distance fields and usable masks, plain and with margin
     kept_steps = steps * (2 * 4)  # every episode's positions
     gif = min(cfg.gif_episodes, cfg.episodes) * steps * (env.lidar_beams * 8 + 16)
     per_episode = env_state_bytes(env) * 2 + kept_steps
-    planners = plan_batch(env.grid_size, batch)  # side by side (``jax.lax.map``), not the batch
+    planners = plan_batch(env.grid_shape, batch)  # side by side (``jax.lax.map``), not the batch
     parts = {
         "runtime": EVAL_RUNTIME_BYTES,
         "room banks": 2 * bank_bytes(env, cfg.split),
