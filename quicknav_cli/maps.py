@@ -26,6 +26,9 @@ def _describe(m: dict) -> str:
     env = m["suggested_env"]
     sets = (f"--set env.rooms=maps --set env.maps.train='[\"{m['ref']}\"]'"
             f" --set env.grid_size={env['grid_size']} --set env.room_size={env['room_size']:g}")  # fmt: skip
+    for key in ("grid_rows", "grid_cols"):  # a non-square map's grid
+        if env.get(key):
+            sets += f" --set env.{key}={env[key]}"
     if env.get("max_steps"):
         sets += f" --set env.max_steps={env['max_steps']}"
     notes = "".join(f"\n  note: {n}" for n in m.get("notes", []))

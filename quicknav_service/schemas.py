@@ -140,7 +140,8 @@ class MapPublic(BaseModel):
     bytes: int = Field(description="size of the stored map files")
     preview_m_per_px: float = Field(description="metres per pixel of preview.png")
     suggested_env: dict[str, Any] = Field(
-        description="env fields that hold this map at 0.5 m cells: rooms, maps.train, grid_size,"
+        description="env fields that hold this map at 0.5 m cells: rooms, maps.train, grid_size"
+        " (with grid_rows or grid_cols for a map that is not square: the grid follows its shape),"
         " room_size and max_steps (twice the map's longest shortest path at full speed; a"
         " starting point, a job may set its own)"
     )

@@ -76,16 +76,24 @@ def boxes_and_people(discs: np.ndarray, config: EnvConfig) -> dict[str, np.ndarr
     return {"boxes": discs[:k][discs[:k, 2] > 0], "people": discs[k:][discs[k:, 2] > 0]}
 
 
+def room_extent(walls: np.ndarray, room_size: float) -> tuple[float, float, float, float]:
+    """(0, width, 0, height) in metres of a room's grid: ``room_size`` is its longer side (a
+    non-square map's grid, ``EnvConfig.grid_shape``), its cells are square."""
+    rows, cols = np.shape(walls)[-2:]
+    cell = room_size / max(rows, cols)
+    return (0.0, cols * cell, 0.0, rows * cell)
+
+
 def map_view(walls: np.ndarray, room_size: float) -> tuple[float, float, float, float]:
     """(x0, x1, y0, y1) in metres: the part of a map's room that pictures show, the free cells'
-    bounding box and the ring of wall cells around it. A map lies in the smallest square grid
-    that holds it (the rest of the square is wall), and a SLAM map's unknown margins are wall too:
-    a picture of the whole square would be mostly wall. Generated rooms are shown whole."""
+    bounding box and the ring of wall cells around it. A map's grid holds the map and its outer
+    ring (a multi-map bank's, the largest map), and a SLAM map's unknown margins are wall too: a
+    picture of the whole grid would be mostly wall. Generated rooms are shown whole."""
     walls = np.asarray(walls, dtype=bool)
     free = ~walls
     if not free.any():
-        return (0.0, room_size, 0.0, room_size)
-    cell = room_size / walls.shape[1]
+        return room_extent(walls, room_size)
+    cell = room_size / max(walls.shape)
     rows, cols = np.flatnonzero(free.any(axis=1)), np.flatnonzero(free.any(axis=0))
     r0, r1 = max(int(rows[0]) - 1, 0), min(int(rows[-1]) + 2, walls.shape[0])
     c0, c1 = max(int(cols[0]) - 1, 0), min(int(cols[-1]) + 2, walls.shape[1])
@@ -108,13 +116,13 @@ def draw_room(ax: Axes, walls: np.ndarray, room_size: float,
     ax.imshow(
         walls.astype(float),
         origin="lower",
-        extent=(0, room_size, 0, room_size),
+        extent=room_extent(walls, room_size),
         cmap=ListedColormap([FREE_COLOUR, WALL_COLOUR]),
         vmin=0,
         vmax=1,
         interpolation="nearest",
     )
-    x0, x1, y0, y1 = view if view is not None else (0.0, room_size, 0.0, room_size)
+    x0, x1, y0, y1 = view if view is not None else room_extent(walls, room_size)
     ax.set_xlim(x0, x1)
     ax.set_ylim(y0, y1)
     ax.set_aspect("equal")
@@ -177,6 +185,7 @@ class FrameDrawer:
         walls = np.asarray(snap["walls"])
         if self._walls is None or walls.shape != self._walls.shape or not np.array_equal(walls, self._walls):
             self.room.set_data(walls.astype(float))
+            self.room.set_extent(room_extent(walls, self.config.room_size))
             x0, x1, y0, y1 = room_view(walls, self.config)  # a map: its own extent, under the title
             self.ax.set_xlim(x0, x1)
             self.ax.set_ylim(y0, y1)

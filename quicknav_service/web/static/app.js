@@ -635,9 +635,12 @@ async function submitPage() {
     if (roomsSel.value === "floorplan") { overrides["env.rooms"] = "floorplan"; origin["env.rooms"] = "env.rooms"; }
     else if (roomsSel.value) {
       const m = maps.data.find((x) => x.id === roomsSel.value);
-      // the map's suggested grid unless the form sets its own
+      // the map's suggested grid unless the form sets its own (a non-square map's rows and
+      // columns go with its suggested grid, never with a grid size the form sets)
+      const shape = "env.grid_size" in overrides ? [] : ["grid_rows", "grid_cols"]
+        .filter((k) => k in m.suggested_env).map((k) => [`env.${k}`, m.suggested_env[k]]);
       for (const [k, v] of [["env.rooms", "maps"], ["env.maps.train", [m.ref]],
-        ["env.grid_size", m.suggested_env.grid_size], ["env.room_size", m.suggested_env.room_size]]) {
+        ["env.grid_size", m.suggested_env.grid_size], ...shape, ["env.room_size", m.suggested_env.room_size]]) {
         if (!(k in overrides)) { overrides[k] = v; origin[k] = "env.rooms"; }
       }
     }

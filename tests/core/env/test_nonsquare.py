@@ -128,9 +128,9 @@ def test_nonsquare__a_long_corridor_takes_its_own_cells_and_the_oracle_drives_it
 
 
 def test_nonsquare__refused_where_it_cannot_be_honoured():
-    with pytest.raises(ValueError, match="grid_rows/grid_cols .* apply only with rooms='maps'"):
+    with pytest.raises(ValueError, match=r"grid_rows/grid_cols .* apply only with rooms=.maps."):
         EnvConfig(grid_size=16, grid_rows=8)
-    with pytest.raises(ValueError, match="the longer side must be grid_size=16"):
+    with pytest.raises(ValueError, match=r"the longer side must be grid_size=16"):
         EnvConfig(rooms="maps", maps={"train": ["x.yaml"]}, grid_size=16, grid_rows=8, grid_cols=12)
     assert EnvConfig(rooms="maps", maps={"train": ["x.yaml"]}, grid_size=16,
                      grid_rows=8).grid_shape == (8, 16)  # fmt: skip
