@@ -58,7 +58,7 @@ def test_cli_env_demo__on_a_map_lays_it_as_eval_does_and_names_the_option_when_i
                                  "--set", "room_size=16", "--set", "grid_size=16"])  # fmt: skip
     assert result.exit_code == 0, result.output
     # the env's 1 m cells (room_size 16 / grid_size 16): the grid that holds the map, and its wall
-    assert f"on {office}: grid 24 of 1 m cells, step limit" in " ".join(result.output.split())
+    assert f"on {office}: grid 16 x 24 (rows x cols) of 1 m cells, step limit" in " ".join(result.output.split())
     assert "reached the goal" in result.output
     with Image.open(tmp_path / "demo.gif") as im:
         assert im.n_frames > 3
