@@ -291,6 +291,7 @@ def run_eval_cases(cases=EVAL_CASES) -> list[dict[str, Any]]:
         measured = eval_peak_rss(cfg)
         rows.append({"case": name, "map": map_path, "cell_m": cell_m, "policy": policy,
                      "episodes": cfg.episodes, "grid_size": cfg.env.grid_size,
+                     "grid": list(cfg.env.grid_shape),
                      "max_steps": cfg.env.max_steps, "estimate_mb": round(est.total / MB),
                      "estimate_parts": est.describe(), "measured_mb": round(measured / MB),
                      "ratio": round(est.total / measured, 3)})  # fmt: skip

@@ -334,15 +334,17 @@ def to_cells(m: OccupancyMap, cell: float, grid: int | tuple[int, int]) -> np.nd
         side = max(need_x, need_y) + 2
         if rows == cols:
             held = f"grid_size={rows} holds {rows - 2} x {rows - 2}"
-            fix = f"Set grid_size >= {side} (room_size {side * cell:g} m)"
+            fix = (f"Set grid_size >= {side} with room_size = grid_size x {cell:g} m (="
+                   f" {side * cell:g} m)")  # fmt: skip
         else:
             held = f"grid_rows x grid_cols = {rows} x {cols} holds {cols - 2} x {rows - 2}"
-            fix = (f"Set grid_rows >= {need_y + 2} and grid_cols >= {need_x + 2}, grid_size the"
-                   f" larger of them (or leave them unset for a square grid_size >= {side})")  # fmt: skip
+            fix = (f"Set grid_rows >= {need_y + 2} and grid_cols >= {need_x + 2} with grid_size the"
+                   f" larger and room_size = grid_size x {cell:g} m (or leave them unset for a"
+                   f" square grid_size >= {side})")  # fmt: skip
         raise MapError(
             f"{m.path}: the map is {width_m:g} m x {height_m:g} m, {need_x} x {need_y} cells of"
-            f" {cell:g} m (room_size / grid_size) plus the outer wall; {held}. {fix} with room_size"
-            f" = grid_size x {cell:g} m, or a larger cell size (room_size / grid_size)"
+            f" {cell:g} m (room_size / grid_size) plus the outer wall; {held}. {fix}, or a larger"
+            " cell size (room_size / grid_size)"
         )
     walls = np.ones((rows, cols), dtype=bool)
     walls[1:1 + need_y, 1:1 + need_x] = False

@@ -68,8 +68,9 @@ REPLAY_FACTOR = 2.85  # peak bytes per replay-buffer byte (measured 2.69 for SAC
 TRANSIENT_FACTOR = 2.0  # inputs and outputs of a compiled call alive together
 # the oracle's and DWA's plans, kept for every episode of a batch for the whole episode: two
 # distance fields (float32) and two usable masks over 5 x 5 nodes per cell; peak bytes per byte
-# of them (measured 1.0-1.5 at grids 45 to 203: the planners' work beside them)
-PLAN_FACTOR = 1.4
+# of them (measured 1.0-1.5 at square grids 45 to 203 and at the maps' own grids, 29 x 45 to
+# 203 x 123: the planners' work beside them; 1.4 was 5 % under the 203 x 123 peak)
+PLAN_FACTOR = 1.5
 
 
 @dataclass(frozen=True)

@@ -127,6 +127,16 @@ def test_nonsquare__a_long_corridor_takes_its_own_cells_and_the_oracle_drives_it
     assert result["metrics"]["success_rate"] == 1.0, result["metrics"]
 
 
+def test_nonsquare__a_grid_too_small_for_the_map_names_rows_and_cols(tmp_path):
+    from quicknav_core.env.maps import MapError, load_map, to_cells
+
+    m = load_map(write_map(tmp_path, np.zeros((6, 20), bool), CELL))  # 10 m x 3 m
+    assert to_cells(m, CELL, (8, 22)).shape == (8, 22)
+    with pytest.raises(MapError, match=r"grid_rows x grid_cols = 8 x 21 holds 19 x 6\. Set grid_rows"
+                                       r" >= 8 and grid_cols >= 22 with grid_size the larger"):
+        to_cells(m, CELL, (8, 21))
+
+
 def test_nonsquare__refused_where_it_cannot_be_honoured():
     with pytest.raises(ValueError, match=r"grid_rows/grid_cols .* apply only with rooms=.maps."):
         EnvConfig(grid_size=16, grid_rows=8)
