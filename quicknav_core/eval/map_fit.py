@@ -49,9 +49,11 @@ class MapFit:
         return self.walls.shape
 
     def shape_fields(self) -> dict[str, int | None]:
-        """``EnvConfig``'s grid_rows and grid_cols for this grid (None for a square)."""
+        """``EnvConfig``'s grid_rows and grid_cols for this grid: the shorter side's count, None
+        for the side that is grid_size (both None for a square)."""
         rows, cols = self.grid_shape
-        return {"grid_rows": None, "grid_cols": None} if rows == cols else {"grid_rows": rows, "grid_cols": cols}
+        return {"grid_rows": rows if rows != self.grid_size else None,
+                "grid_cols": cols if cols != self.grid_size else None}  # fmt: skip
 
     @property
     def grid_corner_in_map(self) -> tuple[float, float]:

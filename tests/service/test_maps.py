@@ -552,6 +552,9 @@ def test_upload__suggestion_sets_a_step_limit_and_says_what_the_server_and_the_c
     if grid <= 256:
         step_m = EnvConfig().max_wheel_speed * EnvConfig().dt
         assert env["max_steps"] >= 2 * (length_m - 2) / step_m, env  # end to end, at full speed, twice
+        # the grid follows the corridor's shape: 5 cells across (2 m and its walls) and the ring
+        assert env["grid_rows"] == 7 and "grid_cols" not in env, env
+        assert EnvConfig.model_validate(env).grid_shape == (7, grid)
     limit = [n for n in notes if "this server's limit" in n]
     if grid <= 64:
         assert limit == [], notes
