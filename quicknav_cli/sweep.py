@@ -55,18 +55,16 @@ def sweep_request(
 
 def _preset_hint(name: str | None) -> str:
     """For a training preset given as a space (the deprecated --preset was the space): the space
-    that starts from it, or one that tunes it with --base."""
-    from quicknav_core.config import PRESETS
-    from quicknav_core.config.resolve import spaces_for
-    from quicknav_core.config.sweep import SPACE_BASE_PRESET
+    that starts from it, or one that tunes it with --base (``resolve.preset_as_space``)."""
+    from quicknav_core.config.resolve import preset_as_space
 
-    if name not in PRESETS:
+    found = preset_as_space(name) if name else None
+    if found is None:
         return ""
-    own = [space for space, base in SPACE_BASE_PRESET.items() if base == name]
-    if own:
-        return f" ({name!r} is a training preset: --space {own[0]} starts from it)"
-    takes = spaces_for(name)
-    return f" ({name!r} is a training preset: --space {takes[0]} --base {name} tunes it)" if takes else ""
+    space, base = found
+    if base is None:
+        return f" ({name!r} is a training preset: --space {space} starts from it)"
+    return f" ({name!r} is a training preset: --space {space} --base {base} tunes it)"
 
 
 def sweep(

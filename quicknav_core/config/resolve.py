@@ -12,9 +12,17 @@ A request that cannot become a config raises ``ConfigError`` whose items name th
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from typing import Any, Literal, TypeVar
+from typing import Any, Literal, TypeVar, get_args
 
-from pydantic import AliasChoices, BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import (
+    AliasChoices,
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from quicknav_core.config.base import Flag, Split, StrictModel, exactly_one_of
 from quicknav_core.config.env import EnvConfig, MapsConfig
@@ -100,6 +108,19 @@ class SweepRequest(StrictModel):
         return _settings_hint(key, SweepConfig, "sweep settings") or _settings_hint(
             key, TrainConfig, "settings of the trials' base config"
         )
+
+    @field_validator("space", mode="before")
+    @classmethod
+    def _not_a_preset(cls, value: Any) -> Any:
+        """A training preset sent as the space: say which space starts from it or tunes it."""
+        found = preset_as_space(value) if isinstance(value, str) else None
+        if found is not None:
+            space, base = found
+            how = (f'"space": "{space}" starts from it' if base is None else
+                   f'"space": "{space}", "base": "{base}" tunes it')  # fmt: skip
+            raise ValueError(f"{value!r} is a training preset, not a search space (allowed:"
+                             f" {', '.join(get_args(SpaceName))}); {how}")  # fmt: skip
+        return value
 
     @model_validator(mode="after")
     def _one(self) -> SweepRequest:
@@ -414,6 +435,21 @@ def _space_base(space: str, preset: str | None) -> TrainConfig:
                                  f" network {config.network.kind}) has no {', '.join(missing)}"
                                  f" for space {space!r} to tune{hint}")  # fmt: skip
     return config  # the rest (no curriculum, ...) SweepConfig checks of every base
+
+
+def preset_as_space(name: str) -> tuple[str, str | None] | None:
+    """For a training preset named where a space goes: (the space whose trials start from it,
+    None), or (a space that tunes it, the preset as its ``base``); None for a name that is a space,
+    is no preset, or is a preset no space can tune."""
+    from quicknav_core.config.sweep import SPACE_BASE_PRESET
+
+    if name in get_args(SpaceName) or name not in PRESETS:
+        return None
+    own = [space for space, base in SPACE_BASE_PRESET.items() if base == name]
+    if own:
+        return own[0], None
+    takes = spaces_for(name)
+    return (takes[0], name) if takes else None
 
 
 def spaces_for(preset: str) -> list[str]:

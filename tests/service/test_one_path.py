@@ -143,6 +143,13 @@ def test_sweep__a_space_on_a_preset_of_the_users_choice(live):
                         ("paper-sac", "--space sac starts from it")):  # fmt: skip
         said = runner.invoke(app, ["sweep", "--space", given, "--print-config"])
         assert said.exit_code == 2 and hint in said.output.replace("\n", ""), said.output
+    # the API says the same in its own words (it answered with the list of spaces alone)
+    for given, hint in (("building", '"space": "ppo", "base": "building" tunes it'),
+                        ("paper-sac", '"space": "sac" starts from it')):  # fmt: skip
+        said = httpx.post(f"{live.url}/jobs/sweep", json={"space": given})
+        (err,) = said.json()["detail"]
+        assert said.status_code == 422 and err["loc"] == ["body", "space"], said.text
+        assert f"{given!r} is a training preset, not a search space" in err["msg"] and hint in err["msg"], err
     config = resolve_sweep({"space": "ppo", "total_steps": 131072}).model_dump(mode="json")
     both = httpx.post(f"{live.url}/jobs/sweep", json={"config": config, "base": "building"})
     assert both.status_code == 422 and "'base' goes with 'space'" in both.text, both.text
