@@ -72,14 +72,32 @@ def holds_run(folder: Path) -> bool:
     return run.config.exists() or run.checkpoint_folder.exists()
 
 
-def free_folder(default: Path) -> Path:
+def free_folder(default: Path, claim: str | None = None) -> Path:
     """The default run folder, or, where an earlier run holds it, the first of NAME-2, NAME-3, ...
-    that holds none: a second `quicknav train --preset demo` never trains over the first."""
+    that holds none: a second `quicknav train --preset demo` never trains over the first.
+
+    ``claim`` (the run's config as JSON): the folder is taken for this run at once, its config.json
+    created exclusively (``train_run`` writes the same), so that a second command started in the
+    same instant, which found the same folder free, takes the next name instead of training into
+    it too."""
     folder, n = default, 1
-    while holds_run(folder):
+    while holds_run(folder) or (claim is not None and not _claimed(folder, claim)):
         n += 1
         folder = default.with_name(f"{default.name}-{n}")
     return folder
+
+
+def _claimed(folder: Path, config_json: str) -> bool:
+    """Whether this process created ``folder``'s config.json (False: another one did first)."""
+    from quicknav_core.layout import RunFolder
+
+    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        with open(RunFolder(folder).config, "x") as f:
+            f.write(config_json)
+    except FileExistsError:
+        return False
+    return True
 
 
 def train(
@@ -133,8 +151,9 @@ def train(
     else:
         request = train_request(preset, config, algo, network, total_steps, num_envs, seed, set_)
         cfg = resolved(resolve_train, request)
+        claim = None if print_only or out is not None else cfg.model_dump_json(indent=2)
         run_dir = out or free_folder(
-            Path("runs") / f"{preset or (config.stem if config else 'demo')}-s{cfg.seed}"
+            Path("runs") / f"{preset or (config.stem if config else 'demo')}-s{cfg.seed}", claim
         )
         if out is not None and holds_run(out) and not print_only:
             # training over it would leave its evaluations and exports beside another policy
@@ -149,8 +168,17 @@ def train(
     runtime = Runtime()  # this command's banks and compiled programs
     # every door's admission: a map that cannot be used, a robot wider than every room's
     # passages, more devices than this machine has: refused before anything compiles
-    admitted(cfg, runtime)
-    devices = local_devices(cfg.devices)
+    try:
+        admitted(cfg, runtime)
+        devices = local_devices(cfg.devices)
+    except BaseException:
+        if resume is None and out is None:  # the default folder claimed above: give it back
+            RunFolder(run_dir).config.unlink(missing_ok=True)
+            try:
+                run_dir.rmdir()  # made for this run, nothing else in it
+            except OSError:
+                pass
+        raise
     enable_compilation_cache()
     console.print(
         f"training {cfg.trainer_kind} ({cfg.network.kind}) for {cfg.total_steps:,} env steps,"

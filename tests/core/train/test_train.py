@@ -278,6 +278,34 @@ def test_cli_train__the_default_folder_never_holds_an_earlier_run(tmp_path, monk
     assert free_folder(first) == Path("runs/demo-s0-3")
 
 
+def test_cli_train__two_trainings_started_at_once_take_two_folders(tmp_path, monkeypatch):
+    """Both find the default folder free in the same instant: the first to create its config.json
+    takes it, the other the next name (they trained into one folder); a run refused before it
+    trains gives its folder back."""
+    import threading
+
+    from quicknav_cli.train import free_folder
+
+    monkeypatch.chdir(tmp_path)
+    start, got = threading.Barrier(8), []
+
+    def take(i: int) -> None:
+        start.wait()
+        got.append(free_folder(Path("runs/demo-s0"), claim=json.dumps({"run": i})))
+
+    threads = [threading.Thread(target=take, args=(i,)) for i in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert sorted(got) == sorted([Path("runs/demo-s0"), *(Path(f"runs/demo-s0-{n}") for n in range(2, 9))])
+    # each folder holds the config of the run that took it
+    assert sorted(json.loads((p / "config.json").read_text())["run"] for p in got) == list(range(8))
+    said = CliRunner().invoke(app, ["train", "--preset", "demo", "--seed", "5", "--set", "devices=2"])
+    assert said.exit_code != 0 and "devices=2" in said.output, said.output
+    assert not Path("runs/demo-s5").exists()  # refused: nothing claimed is left behind
+
+
 def tensorboard_scalars(folder) -> dict[str, list[tuple[int, float]]]:
     """Scalars of the TensorBoard event files in ``folder``, read as TensorBoard does: TFRecord
     frames (length, its CRC, the serialised Event, its CRC) of ``Event`` protos."""
