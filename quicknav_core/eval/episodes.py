@@ -243,7 +243,7 @@ def episode_plan(ep: Episodes, config: EnvConfig, i: int) -> np.ndarray | None:
         from quicknav_core.env.plan_np import plan_polyline_np
 
         cell = config.cell_size
-        return plan_polyline_np(ep.plan_fields[i], _cell_of(start, cell, ep.plan_fields.shape[1]),
+        return plan_polyline_np(ep.plan_fields[i], _cell_of(start, cell, ep.plan_fields.shape[1:]),
                                 start, goal, cell)  # fmt: skip
     return plan_path(config, ep.walls[i], start, goal)
 
@@ -258,15 +258,16 @@ def plan_path(config: EnvConfig, walls: np.ndarray, start: np.ndarray, goal: np.
     from quicknav_core.env.plan_np import plan_polyline_np
 
     walls = np.asarray(walls, dtype=bool)
-    cell, g = config.cell_size, walls.shape[0]
+    cell = config.cell_size
     usable = disc_fits(walls, cell, config.robot_radius) if config.collision_reach else ~walls
-    field = cell_field_np(usable, _cell_of(goal, cell, g))
-    return plan_polyline_np(field, _cell_of(start, cell, g), start, goal, cell)
+    field = cell_field_np(usable, _cell_of(goal, cell, walls.shape))
+    return plan_polyline_np(field, _cell_of(start, cell, walls.shape), start, goal, cell)
 
 
-def _cell_of(xy, cell: float, g: int) -> np.ndarray:
-    """(row, col) of the cell holding the point ``xy`` on a grid of ``g`` cells of ``cell`` m."""
-    return np.clip(np.floor(np.asarray(xy, np.float64)[::-1] / cell).astype(np.int64), 0, g - 1)
+def _cell_of(xy, cell: float, shape: tuple[int, ...]) -> np.ndarray:
+    """(row, col) of the cell holding the point ``xy`` on a (rows, cols) grid of ``cell`` m."""
+    rc = np.floor(np.asarray(xy, np.float64)[::-1] / cell).astype(np.int64)
+    return np.clip(rc, 0, np.asarray(shape[:2]) - 1)
 
 
 def outcome(ep: Episodes, i: int, config: EnvConfig) -> str:

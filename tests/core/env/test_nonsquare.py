@@ -133,6 +133,23 @@ def test_nonsquare__a_long_corridor_takes_its_own_cells_and_the_oracle_drives_it
     assert result["metrics"]["success_rate"] == 1.0, result["metrics"]
 
 
+def test_nonsquare__the_pictures_plan_is_the_square_rooms(tmp_path):
+    """The plan the pictures and the replay draw (``episodes.plan_path``, from a start far along
+    the long side, beyond the short side's count of cells)."""
+    from quicknav_core.eval.episodes import plan_path
+
+    rect, square = _envs(_map(tmp_path, 6, 20, seed=6), obstacles=None)
+    walls = rect.build("train")[1].rooms[0]
+    padded = np.ones(square.grid_shape, bool)
+    padded[: walls.shape[0], : walls.shape[1]] = np.asarray(walls)
+    free = np.argwhere(~np.asarray(walls))
+    start_rc, goal_rc = free[np.argmax(free[:, 1])], free[np.argmin(free[:, 1])]
+    assert start_rc[1] >= walls.shape[0]  # a column the short side does not have
+    start, goal = (start_rc[::-1] + 0.5) * CELL, (goal_rc[::-1] + 0.5) * CELL
+    got, want = plan_path(rect, np.asarray(walls), start, goal), plan_path(square, padded, start, goal)
+    assert len(got) > 2 and np.array_equal(got, want)
+
+
 def test_nonsquare__a_grid_too_small_for_the_map_names_rows_and_cols(tmp_path):
     from quicknav_core.env.maps import MapError, load_map, to_cells
 
