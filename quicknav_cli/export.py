@@ -95,5 +95,7 @@ def export_cmd(
     )
     if doc.get("map"):
         m = doc["map"]
-        console.print(f"wrote {out}/map.npz: {m['source']} on a grid of {m['grid'][0]} cells of"
-                      f" {m['cell_m']:g} m ({m['free_kept']:.0%} of its free space kept)", highlight=False)  # fmt: skip
+        rows, cols = m["grid"]
+        console.print(f"wrote {out}/map.npz: {m['source']} on a grid of {rows} x {cols} cells (rows x"
+                      f" cols) of {m['cell_m']:g} m ({m['free_kept']:.0%} of its free space kept)",
+                      highlight=False)  # fmt: skip

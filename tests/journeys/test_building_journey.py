@@ -40,6 +40,8 @@ def test_journey__drive_a_building(runner, trained_building_run):
     result = json.loads((runner.workdir / "office" / "eval.json").read_text())
     env = result["env_config"]
     assert env["room_size"] / env["grid_size"] == 0.5 and env["grid_size"] >= 42, env
+    # in the map's own shape (21.2 m x 13.2 m: 29 x 45 cells with the ring), not a square around it
+    assert (env["grid_rows"], env["grid_size"], env["grid_cols"]) == (29, 45, None), env
     assert env["max_steps"] > 300 and f"step limit {env['max_steps']}" in evaluated.stdout, str(evaluated)
     # among the preset's own unmapped obstacles, and it says so (a figure with them is not one
     # without them)
@@ -59,6 +61,7 @@ def test_journey__drive_a_building(runner, trained_building_run):
         f" of office goals, return {m['return']['mean']:.1f}")  # fmt: skip
     doc = json.loads((runner.workdir / "robot" / "policy.json").read_text())
     assert doc["map"]["cell_m"] == 0.5 and (runner.workdir / "robot" / doc["map"]["file"]).is_file(), doc["map"]
+    assert doc["map"]["grid"] == [29, 45] and "on a grid of 29 x 45 cells" in " ".join(exported.stdout.split())
     left, right = (float(w.split()[1]) for w in navigated.stdout.split(";")[0].split(",")[:2])
     assert abs(left) <= 1.0 and abs(right) <= 1.0 and "reached: False" in navigated.stdout, str(navigated)
     # the robot's side, closed loop: the NumPy twin drives the exported policy through Navigator
