@@ -173,7 +173,7 @@ def suggest_env(yaml_path: Path, ref: str, m: OccupancyMap) -> tuple[dict[str, A
     try:
         fit = fit_map(env, yaml_path, loaded=m)
     except MapError as e:  # larger than any grid at 0.5 m cells, or nowhere a robot fits
-        grid = max(math.ceil(x / SUGGESTED_CELL_M - 1e-9) for x in m.size_m) + 2
+        grid = max(m.cells(SUGGESTED_CELL_M)) + 2
         return ({"rooms": "maps", "maps": {"train": [ref]}, "grid_size": grid,
                  "room_size": grid * SUGGESTED_CELL_M}, [str(e)])  # fmt: skip
     shape = {k: v for k, v in fit.shape_fields().items() if v is not None}  # a non-square map's

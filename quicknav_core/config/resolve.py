@@ -441,8 +441,6 @@ def preset_as_space(name: str) -> tuple[str, str | None] | None:
     """For a training preset named where a space goes: (the space whose trials start from it,
     None), or (a space that tunes it, the preset as its ``base``); None for a name that is a space,
     is no preset, or is a preset no space can tune."""
-    from quicknav_core.config.sweep import SPACE_BASE_PRESET
-
     if name in get_args(SpaceName) or name not in PRESETS:
         return None
     own = [space for space, base in SPACE_BASE_PRESET.items() if base == name]

@@ -141,6 +141,11 @@ class OccupancyMap:
         h, w = self.blocked.shape
         return w * self.resolution, h * self.resolution
 
+    def cells(self, cell: float) -> tuple[int, int]:
+        """(rows, cols) of ``cell``-metre cells the map covers, without the outer ring of wall."""
+        width_m, height_m = self.size_m
+        return math.ceil(height_m / cell - 1e-9), math.ceil(width_m / cell - 1e-9)
+
 
 def _read_image(path: Path, mode: str = "trinary") -> tuple[np.ndarray, np.ndarray | None]:
     """The pixels' levels 0..255, (H, W), top row first (as the picture is drawn), by map_server's
@@ -329,7 +334,7 @@ def to_cells(m: OccupancyMap, cell: float, grid: int | tuple[int, int]) -> np.nd
     of ``cell`` metres (see the module doc)."""
     rows, cols = (grid, grid) if isinstance(grid, int) else grid
     width_m, height_m = m.size_m
-    need_x, need_y = math.ceil(width_m / cell - 1e-9), math.ceil(height_m / cell - 1e-9)
+    need_y, need_x = m.cells(cell)
     if need_x > cols - 2 or need_y > rows - 2:
         side = max(need_x, need_y) + 2
         if rows == cols:

@@ -90,9 +90,9 @@ def fit_map(env: EnvConfig, path: str | Path, read: dict[str, Any] | None = None
     m = loaded if loaded is not None else load_map(path, **read)
     cell = env.cell_size
     width_m, height_m = m.size_m
-    rows, cols = math.ceil(height_m / cell - 1e-9) + 2, math.ceil(width_m / cell - 1e-9) + 2
-    side = max(rows, cols, GRID_SIZE_RANGE[0])
-    rows, cols = max(rows, GRID_SIZE_RANGE[0]), max(cols, GRID_SIZE_RANGE[0])
+    # the map's cells and the outer ring, at least the smallest grid an env may have
+    rows, cols = (max(n + 2, GRID_SIZE_RANGE[0]) for n in m.cells(cell))
+    side = max(rows, cols)
     if side > MAX_GRID:
         raise MapError(f"{m.path}: the map is {width_m:g} m x {height_m:g} m: at the env's"
                        f" {cell:g} m cells (cell_size; a policy's are those it trained with) that is"

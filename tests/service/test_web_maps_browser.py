@@ -201,3 +201,38 @@ def test_browser__a_building_policy_evaluated_on_an_uploaded_map_replays_its_pla
     legend = page.inner_text(".legend")
     assert "global plan" in legend and ("box" in legend or "person" in legend), legend
     page.screenshot(path=shots / "building-replay.png", full_page=True)
+
+
+def test_browser__a_non_square_map_from_the_submit_form_takes_its_own_grid(server, page):  # noqa: F811
+    """The submit form sends a non-square map's own grid with it (the office: 29 x 45 cells at
+    0.5 m, rows x cols), not only its longer side; the request is held back (nothing trains)."""
+    from tests.journeys.readme import ROOT
+
+    office = ROOT / "examples" / "maps"
+    files = [("files", ("office.yaml", (office / "office.yaml").read_bytes())),
+             ("files", ("office.pgm", (office / "office.pgm").read_bytes()))]  # fmt: skip
+    up = httpx.post(f"{server}/maps", headers=AUTH, files=files, data={"name": "office"})
+    assert up.status_code in (200, 201), up.text
+    m = up.json()
+    assert (m["suggested_env"]["grid_size"], m["suggested_env"]["grid_rows"]) == (45, 29), m
+    page.goto(f"{server}/ui/submit?map={m['id']}")
+    page.wait_for_selector("#login, #submit-form")
+    if page.locator("#login").count():  # signed in by the module's first test, unless run alone
+        page.fill("input[name=token]", TOKEN)
+        page.click("#login button[type=submit]")
+    page.wait_for_selector("#submit-form")
+    assert page.input_value("#rooms") == m["id"]
+    sent = []
+    page.route("**/jobs/train", lambda route: (sent.append(route.request.post_data_json), route.abort()))
+    page.click("#submit")
+    for _ in range(50):
+        if sent:
+            break
+        page.wait_for_timeout(100)
+    page.unroute("**/jobs/train")
+    (body,) = sent
+    o = body["overrides"]
+    assert (o["env.rooms"], o["env.grid_size"], o["env.grid_rows"], o["env.room_size"]) == (
+        "maps", 45, 29, 22.5), o  # fmt: skip
+    assert "env.grid_cols" not in o, o
+    assert httpx.delete(f"{server}/maps/{m['id']}", headers=AUTH).status_code == 204
