@@ -4,7 +4,11 @@ A test builds a program, runs it a few steps and checks the result; on 2 CPU cor
 not the run, is most of its time. So the test processes, and what they start (CLI commands, workers,
 servers), compile with XLA's CPU optimisations mostly off (``JAX_DISABLE_MOST_OPTIMIZATIONS``: LLVM
 at -O0) and without XLA's newer CPU fusion emitters: the GTrXL equality test's compile falls from
-19 to 11 s, its programs run the same numbers to float rounding. Programs compiled so run slower
+19 to 11 s, its programs run the same numbers to float rounding. They also compile each program's
+machine code in one piece (``--xla_cpu_parallel_codegen_split_count=1``): XLA splits it for its
+threads by default, which on a run whose processes already keep both cores busy only adds work
+(the networks and randomisation tests: 42.0 and 41.6 CPU-s split, 37.7 and 39.3 in one piece,
+2-core Intel Xeon VM; a user's -O3 compile of the demo training gained nothing, so it stays as is). Programs compiled so run slower
 (the demo training takes 42 s instead of 28), so what mostly runs keeps a user's settings:
 
 - the trainings that reach a target (``tests/trained.py``), memory admission's measured processes
@@ -25,7 +29,7 @@ import os
 
 # the user's own XLA_FLAGS, kept for the processes that run as a user does
 USER_XLA_FLAGS = "QUICKNAV_TEST_USER_XLA_FLAGS"
-QUICK_XLA_FLAGS = "--xla_cpu_use_fusion_emitters=false"
+QUICK_XLA_FLAGS = "--xla_cpu_use_fusion_emitters=false --xla_cpu_parallel_codegen_split_count=1"
 QUICK_JAX = "JAX_DISABLE_MOST_OPTIMIZATIONS"
 
 
