@@ -214,69 +214,106 @@ def cast_lidar_bits(
 def lidar_window(grid_size: int, cell: float, max_range: float) -> int:
     """Grid lines per axis the caster must cross to see ``max_range`` from anywhere in a cell:
     those within ``ceil(max_range / cell)`` of the robot's cell on either side, one more each way
-    for rounding, at most the grid's ``g - 1``. Grids up to 32 cells always take all their lines
-    (the bit-scan search over one word), so a range changes nothing compiled there."""
+    for rounding, at most the grid's ``g - 1`` (a window of 2 * reach + 3 lines: the windowed
+    caster takes the reach + 1 on each side of the robot's cell). Grids up to 32 cells always take
+    all their lines (the bit-scan search over one word), so a range changes nothing compiled
+    there."""
     if grid_size <= 32:
         return grid_size - 1
     reach = math.ceil(max_range / cell - 1e-9)
     return min(grid_size - 1, 2 * reach + 3)
 
 
-def _window_bits(origin: jax.Array, line_bits: jax.Array, lines: int) -> tuple[jax.Array, jax.Array]:
-    """The window of ``lines`` consecutive lines centred on the origin's cell (shifted to stay in
-    1..g-1): (the first line's index k0 as float32, the entered walls of those lines (lines, W))."""
-    g = line_bits.shape[0]
-    k0 = jnp.clip(jnp.floor(origin).astype(jnp.int32) - (lines - 1) // 2, 1, g - lines)
-    near = jax.lax.dynamic_slice_in_dim(line_bits, k0 - 1, lines + 1, axis=0)  # cells k0-1..k0+lines-1
-    ahead = (k0 + jnp.arange(lines)).astype(jnp.float32) > origin
-    return k0.astype(jnp.float32), jnp.where(ahead[:, None], near[1:], near[:-1])
+# the largest half window whose crossings within range all lie within 31 cells of the origin
+# along the other axis (a reach of half - 1 cells and one more for rounding): one word each
+ONE_WORD_HALF = 31
 
 
-def _near_words(entered: jax.Array, origin_b: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """Each line's 64 cells around the origin along the other axis, as two words: (the first
-    cell's index b0, (lines, 2) uint32), cells b0 .. b0 + 63, b0 = floor(origin_b) - 32 (cells
-    off the grid read as free). A crossing within range of the origin lies among them."""
-    lines, w = entered.shape
+def _side_words(entered: jax.Array, origin_b: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Each line's cells next to the origin along the other axis, as two words: ``up`` holds cells
+    f .. f+31 (bit i: cell f + i) and ``down`` cells f-31 .. f (bit i: cell f - 31 + i), where
+    f = floor(origin_b). Returns (up (lines,), down (lines,), f). Cells off the grid read as free.
+
+    A beam whose component along the other axis is >= 0 enters, within range, only cells
+    f .. f + reach, and one whose component is negative only cells f - reach .. f: with a reach
+    of at most 30 cells (``ONE_WORD_HALF``) either reads each of its crossings from one word, by
+    a shift."""
+    lines, _ = entered.shape
     zero = jnp.zeros((lines, 1), jnp.uint32)
-    padded = jnp.concatenate([zero, entered, zero], axis=1)  # word j + 1 holds cells 32j..32j+31
-    start = jnp.floor(origin_b).astype(jnp.int32)  # cell b0 = start - 32 is bit `start` of padded
-    three = jax.lax.dynamic_slice_in_dim(padded, start // 32, 3, axis=1)
-    r = (start % 32).astype(jnp.uint32)
-    up = jnp.uint32(32) - r  # a shift by 32 gives 0 (r = 0: the words are aligned)
-    lo = jnp.right_shift(three[:, 0], r) | jnp.left_shift(three[:, 1], up)
-    hi = jnp.right_shift(three[:, 1], r) | jnp.left_shift(three[:, 2], up)
-    return start - 32, jnp.stack([lo, hi], axis=1)
+    padded = jnp.concatenate([zero, entered, zero], axis=1)  # bit q of the padded row: cell q - 32
+    f = jnp.floor(origin_b).astype(jnp.int32)
+    j = (f + 1) // 32  # the padded word holding cell f - 31; cell f + 62 lies in word j + 2
+    three = jax.lax.dynamic_slice_in_dim(padded, j, 3, axis=1)
+
+    def cells_from(q: jax.Array) -> jax.Array:  # 32 cells from padded bit q, q in [32j, 32j + 64)
+        first = q // 32 - j  # 0 or 1
+        lo = jnp.where(first == 0, three[:, 0], three[:, 1])
+        hi = jnp.where(first == 0, three[:, 1], three[:, 2])
+        r = (q % 32).astype(jnp.uint32)
+        return jnp.right_shift(lo, r) | jnp.left_shift(hi, jnp.uint32(32) - r)  # a shift by 32: 0
+
+    return cells_from(f + 32), cells_from(f + 1), f
 
 
-def _window_crossings(origin_a, origin_b, dir_a, dir_b, k0, entered):
-    """``_crossings`` over the window's lines ``a = k0 .. k0 + lines - 1``. With rows of more than
-    two words and a window of at most 63 lines (every crossing within range lies within 31 cells of
-    the origin along the other axis), the walls are read from each line's two words around the
-    origin (``_near_words``) instead of all of its words; crossings beyond range may then read
-    "free", which cannot change what the beam reports."""
-    lines, w = entered.shape
-    t, idx = _crossing_points(origin_a, origin_b, dir_a, dir_b, k0, lines)
-    if w > 2 and lines <= 63:
-        b0, near = _near_words(entered, origin_b)
-        return t, read_bit(near[None, :, :], idx - b0)
-    return t, read_bit(entered[None, :, :], idx)
+def _first_walls_near(origin_a, origin_b, dir_a, dir_b, line_bits, half: int):
+    """The first wall each beam's two movers meet on the lines ``a = k`` within ``half`` lines
+    of the origin: (ahead (B,), behind (B,)) distances in cell units, BIG if none.
+
+    A beam along (dir_a, dir_b) and its opposite meet every line at the same point; the one that
+    moves towards +a meets the lines ahead of the origin (k > origin), entering cell k, the other
+    the lines behind it (k <= origin), entering cell k - 1. So the lines are taken in two halves of
+    ``half`` lines, ahead and behind, each crossed once per beam by the mover that meets it, at
+    the distance ``|k - origin| / |dir_a|``: every crossing is ahead of its mover and the first
+    wall is a plain minimum (no test of the crossing's side, no second pass for the opposite beam).
+    Near the grid's border a half window is moved inside the grid and its lines on the other side
+    of the origin are left out. The walls are read from each line's word on the mover's side of the
+    origin along b (``_side_words``)."""
+    g = line_bits.shape[0]
+    fa = jnp.floor(origin_a).astype(jnp.int32)
+    first_ahead = jnp.minimum(fa + 1, g - half)  # lines first_ahead .. + half - 1
+    first_behind = jnp.maximum(fa - half + 1, 1)
+    j = jnp.arange(half, dtype=jnp.int32)
+    inv = 1.0 / jnp.where(jnp.abs(dir_a) < 1e-12, 1e-12, jnp.abs(dir_a))
+    # the b-component of the beam's mover towards +a
+    b_ahead = dir_b * jnp.where(dir_a < 0, -1.0, 1.0)
+    found = []
+    for rows_from, k, side, sign, b in (
+        (first_ahead, first_ahead + j, first_ahead + j > fa, 1.0, b_ahead),  # enters cell k
+        (first_behind - 1, first_behind + j, first_behind + j <= fa, -1.0, -b_ahead),  # cell k-1
+    ):
+        entered = jax.lax.dynamic_slice_in_dim(line_bits, rows_from, half, axis=0)
+        t = (sign * (k.astype(jnp.float32)[None, :] - origin_a)) * inv[:, None]  # (B, half)
+        idx = jnp.floor(origin_b + t * b[:, None]).astype(jnp.int32)
+        if half <= ONE_WORD_HALF:
+            up, down, fb = _side_words(entered, origin_b)
+            going_up = (b >= 0)[:, None]
+            word = jnp.where(going_up, up[None, :], down[None, :])
+            bit = jnp.where(going_up, idx - fb, idx - (fb - 31))  # in [0, 32) within range
+            wall = (jnp.right_shift(word, (bit & 31).astype(jnp.uint32)) & jnp.uint32(1)) != 0
+        else:  # a reach of 31 cells or more: the crossing's cell from the line's whole row
+            wall = read_bit(entered[None, :, :], idx)
+        found.append(jnp.min(jnp.where(wall & side[None, :], t, _BIG), axis=-1))
+    return found[0], found[1]
 
 
 def _cast_window(px, py, theta, pos, goal, col_bits, row_bits, num_beams, fov_deg, cell, max_range,
                  goal_radius, lines):  # fmt: skip
-    """``cast_lidar_bits`` over the ``lines`` lines per axis around the robot (see there); an
-    axis with fewer lines (the short side of a non-square room) takes all of its own."""
-    kx, enter_x = _window_bits(px, col_bits, min(lines, col_bits.shape[0] - 1))
-    ky, enter_y = _window_bits(py, row_bits, min(lines, row_bits.shape[0] - 1))
+    """``cast_lidar_bits`` over the lines within range of the robot (see there): ``(lines - 1) / 2``
+    lines on each side of its cell per axis (``_first_walls_near``); an axis with fewer lines (the
+    short side of a non-square room) takes all of its own on both sides.
+
+    Exactly the whole grid's result (a crossing beyond range reads whatever, and cannot change
+    what the beam reports), at about half the work of crossing the window's lines with both beams
+    of a pair and reading each crossing from two words."""
+    half = (lines - 1) // 2
     paired = lidar_is_paired(num_beams, fov_deg)
     dx, dy = beam_directions(theta, num_beams, fov_deg, num_beams // 2 if paired else num_beams)
-    t_v, wall_v = _window_crossings(px, py, dx, dy, kx, enter_x)
-    t_h, wall_h = _window_crossings(py, px, dy, dx, ky, enter_y)
-    t = jnp.concatenate([t_v, t_h], axis=-1)
-    wall = jnp.concatenate([wall_v, wall_h], axis=-1)
-    t_wall = jnp.min(jnp.where(wall & (t >= 0.0), t, _BIG), axis=-1)
+    ahead_x, behind_x = _first_walls_near(px, py, dx, dy, col_bits, min(half, col_bits.shape[0] - 1))
+    ahead_y, behind_y = _first_walls_near(py, px, dy, dx, row_bits, min(half, row_bits.shape[0] - 1))
+    t_wall = jnp.minimum(jnp.where(dx > 0, ahead_x, behind_x), jnp.where(dy > 0, ahead_y, behind_y))
     if paired:
-        t_wall = jnp.concatenate([t_wall, jnp.min(jnp.where(wall & (t < 0.0), -t, _BIG), axis=-1)])
+        t_back = jnp.minimum(jnp.where(dx > 0, behind_x, ahead_x), jnp.where(dy > 0, behind_y, ahead_y))
+        t_wall = jnp.concatenate([t_wall, t_back])
         dx, dy = jnp.concatenate([dx, -dx]), jnp.concatenate([dy, -dy])
     return _with_goal(jnp.where(t_wall < _BIG, t_wall * cell, _BIG), pos, dx, dy, goal, max_range,
                       goal_radius)  # fmt: skip

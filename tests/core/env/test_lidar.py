@@ -165,24 +165,32 @@ def test_lidar_method__envs_step_identically_with_either_caster():
         np.testing.assert_array_equal(out["crossings"].reward, out["dda"].reward)
 
 
-@pytest.mark.parametrize("g", [64, 128])  # 2 words per row; 4 (each line's walls near the robot)
-def test_lidar__range_window_sees_what_the_whole_grid_sees(g):
-    """The caster crosses only the lines within range of the robot (``lidar_window``): on sparse
-    walls, where many hits lie near the range's edge and near the grid's border, it returns exactly
-    what crossing every line of the grid returns."""
-    from quicknav_core.env.lidar import lidar_window
+@pytest.mark.parametrize("g,beams,fov,max_range,reach", [
+    (64, 64, 360.0, 2.6, 11),  # 2 words per row
+    (128, 64, 360.0, 2.6, 11),  # 4 words per row
+    (96, 15, 270.0, 4.1, 17),  # unpaired beams: each one's own side of every line
+    (100, 16, 360.0, 7.6, 31),  # a reach past one word: each crossing read from its whole row
+])  # fmt: skip
+def test_lidar__range_window_sees_what_the_whole_grid_sees(g, beams, fov, max_range, reach):
+    """The caster crosses only the lines within range of the robot (``lidar_window``), on each
+    side of it only those the beam moving that way meets: on sparse walls, where many hits lie
+    near the range's edge and near the grid's border, it returns exactly what crossing every line
+    of the grid returns."""
+    from quicknav_core.env.lidar import ONE_WORD_HALF, lidar_window
 
-    beams, cell, max_range = 64, 0.25, 2.6
+    cell = 0.25
     lines = lidar_window(g, cell, max_range)
-    assert lines == 2 * 11 + 3
+    assert lines == 2 * reach + 3
+    assert (reach + 1 > ONE_WORD_HALF) == (reach == 31)  # the last case takes the other read
     rng = np.random.default_rng(3)
-    n = 400
-    walls = rng.random((n, g, g)) < 0.04
+    n = 25_600 // beams  # the same number of beams in every case
+    # walls as sparse as the range is long: a beam's free path is about the range
+    walls = rng.random((n, g, g)) < 0.04 * 2.6 / max_range
     walls[:, 0, :] = walls[:, -1, :] = walls[:, :, 0] = walls[:, :, -1] = True
     pos = rng.uniform(cell, (g - 1) * cell, (n, 2)).astype(np.float32)
     theta = rng.uniform(-np.pi, np.pi, n).astype(np.float32)
     goal = np.full((n, 2), -10.0, np.float32)  # off the grid: walls only
-    args = (pos, theta, goal, walls, beams, 360.0, cell, max_range, 0.3, "crossings")
+    args = (pos, theta, goal, walls, beams, fov, cell, max_range, 0.3, "crossings")
     window_r, window_h = map(np.asarray, cast_batch(*args, lines))
     whole_r, whole_h = map(np.asarray, cast_batch(*args, None))
     assert (window_h == whole_h).all()
