@@ -4,7 +4,9 @@ Two formulations with identical results (tests hold both to a brute-force caster
 twin), chosen by ``EnvConfig.lidar_method``:
 
 - ``crossings`` (below): every crossing of every beam at once, walls read from bit-packed rows and
-  columns; fixed work of 2(g-1) crossings per beam, no gathers. Tuned on CPU.
+  columns; fixed work of 2(g-1) crossings per beam on grids up to 32 cells, and above them only the
+  lines within range of the robot (``lidar_window``), each crossed by the one beam of a pair that
+  meets it (``_first_walls_near``). Tuned on CPU.
 - ``dda``: each beam walks cell by cell (Amanatides & Woo) and stops at its first wall or at
   ``max_range``; work is the distance travelled, one row-word gather per step. Written for GPUs.
 
