@@ -457,6 +457,16 @@ class EnvConfig(StrictModel):
         return lidar_window(self.grid_size, self.cell_size, self.lidar_max_range)
 
     @property
+    def lidar_reads_window(self) -> bool:
+        """Whether the lidar crosses only the lines within its range, read from the room bank
+        laid out for it (``EnvParams.room_col_window``): the crossings caster on a grid above 32
+        cells whose range is shorter than the grid."""
+        from quicknav_core.env.lidar import resolve_lidar_method, uses_window
+
+        return resolve_lidar_method(self.lidar_method) == "crossings" and uses_window(
+            self.grid_size, self.lidar_lines)  # fmt: skip
+
+    @property
     def randomized(self) -> bool:
         """Whether sensor and actuator randomisation is on (``randomize`` is set)."""
         return self.randomize is not None

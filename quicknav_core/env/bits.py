@@ -77,3 +77,21 @@ def set_bit(bits: jax.Array, row: jax.Array, col: jax.Array) -> jax.Array:
         return bits.at[row].set(jnp.where(jnp.arange(n) == col // 32, words | mask, words))
     hit = (jnp.arange(g)[:, None] == row) & (jnp.arange(n)[None, :] == col // 32)
     return jnp.where(hit, bits | mask, bits)
+
+
+class BankRows:
+    """One room's packed rows read in place from a bank: ``rows[r]`` is ``bank[room, r]`` (W,),
+    ``rows.shape`` the room's (rows, W). For the readers of a few rows near the robot (the
+    collision test, the proximity term, the obstacles' walk) on grids above 32 cells: an env
+    state's own copy of its room is then read by nothing in a step, so the step does not hold it
+    twice (XLA copies a buffer that a loop both reads and rewrites in place)."""
+
+    def __init__(self, bank: jax.Array, room: jax.Array):
+        self.bank, self.room = bank, room
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.bank.shape[1], self.bank.shape[2]
+
+    def __getitem__(self, row: jax.Array) -> jax.Array:
+        return self.bank[self.room, row]

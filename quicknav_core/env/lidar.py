@@ -34,8 +34,8 @@ from quicknav_core.env.constants import HIT_GOAL, HIT_NONE, HIT_WALL, beam_angle
 
 __all__ = [
     "FASTEST_LIDAR", "LIDAR_METHODS", "beam_angles", "cast_lidar", "cast_lidar_bits",
-    "cast_lidar_dda", "cast_lidar_packed", "lidar_is_paired", "lidar_window", "ray_disc",
-    "resolve_lidar_method",
+    "cast_lidar_dda", "cast_lidar_packed", "cast_lidar_window", "lidar_is_paired", "lidar_window",
+    "ray_disc", "resolve_lidar_method", "uses_window", "window_bits",
 ]  # fmt: skip
 
 LIDAR_METHODS = ("crossings", "dda")
@@ -181,12 +181,13 @@ def cast_lidar_bits(
     line within ``max_range`` (a wall beyond it is out of range, so the result is the same). None:
     every line of the grid.
     """
+    g = max(row_bits.shape[0], col_bits.shape[0])  # a non-square room: its longer side
+    if uses_window(g, lines):  # the window, laid out for this one room
+        return cast_lidar_window(pos, theta, goal, window_bits(col_bits, lines)[None],
+                                 window_bits(row_bits, lines)[None], 0, num_beams, fov_deg, cell,
+                                 max_range, goal_radius, lines)  # fmt: skip
     inv_cell = 1.0 / cell
     px, py = pos[0] * inv_cell, pos[1] * inv_cell
-    g = max(row_bits.shape[0], col_bits.shape[0])  # a non-square room: its longer side
-    if lines is not None and lines < g - 1 and g > 32:
-        return _cast_window(px, py, theta, pos, goal, col_bits, row_bits, num_beams, fov_deg, cell,
-                            max_range, goal_radius, lines)  # fmt: skip
     enter_x = _entered_bits(px, col_bits)
     enter_y = _entered_bits(py, row_bits)
     paired = lidar_is_paired(num_beams, fov_deg)
@@ -231,35 +232,48 @@ def lidar_window(grid_size: int, cell: float, max_range: float) -> int:
 ONE_WORD_HALF = 31
 
 
-def _side_words(entered: jax.Array, origin_b: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+def uses_window(grid_size: int, lines: int | None) -> bool:
+    """Whether the caster crosses only a window of ``lines`` lines per axis (grids above 32 cells
+    whose lidar range is shorter than the grid), reading it from ``window_bits``."""
+    return lines is not None and grid_size > 32 and lines < grid_size - 1
+
+
+def window_bits(line_bits: jax.Array, lines: int) -> jax.Array:
+    """(..., g, W) packed lines -> (..., g + 2h, W + 2), h = (lines - 1) // 2: the lines with h
+    free lines before and after them and a free word on either side, so that the window of any
+    robot's cell is one slice, the same for every cell (``EnvParams.room_col_window``)."""
+    half = (lines - 1) // 2
+    pad = [(0, 0)] * (line_bits.ndim - 2) + [(half, half), (1, 1)]
+    return jnp.pad(line_bits, pad)
+
+
+def _side_words(window: jax.Array, origin_b: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Each line's cells next to the origin along the other axis, as two words: ``up`` holds cells
     f .. f+31 (bit i: cell f + i) and ``down`` cells f-31 .. f (bit i: cell f - 31 + i), where
-    f = floor(origin_b). Returns (up (lines,), down (lines,), f). Cells off the grid read as free.
+    f = floor(origin_b); ``window`` is (lines, 3): the padded row's words j .. j + 2 (bit q of a
+    padded row: cell q - 32), j = (f + 1) // 32. Returns (up (lines,), down (lines,), f).
 
     A beam whose component along the other axis is >= 0 enters, within range, only cells
     f .. f + reach, and one whose component is negative only cells f - reach .. f: with a reach
     of at most 30 cells (``ONE_WORD_HALF``) either reads each of its crossings from one word, by
     a shift."""
-    lines, _ = entered.shape
-    zero = jnp.zeros((lines, 1), jnp.uint32)
-    padded = jnp.concatenate([zero, entered, zero], axis=1)  # bit q of the padded row: cell q - 32
     f = jnp.floor(origin_b).astype(jnp.int32)
-    j = (f + 1) // 32  # the padded word holding cell f - 31; cell f + 62 lies in word j + 2
-    three = jax.lax.dynamic_slice_in_dim(padded, j, 3, axis=1)
+    j = (f + 1) // 32
 
     def cells_from(q: jax.Array) -> jax.Array:  # 32 cells from padded bit q, q in [32j, 32j + 64)
         first = q // 32 - j  # 0 or 1
-        lo = jnp.where(first == 0, three[:, 0], three[:, 1])
-        hi = jnp.where(first == 0, three[:, 1], three[:, 2])
+        lo = jnp.where(first == 0, window[:, 0], window[:, 1])
+        hi = jnp.where(first == 0, window[:, 1], window[:, 2])
         r = (q % 32).astype(jnp.uint32)
         return jnp.right_shift(lo, r) | jnp.left_shift(hi, jnp.uint32(32) - r)  # a shift by 32: 0
 
     return cells_from(f + 32), cells_from(f + 1), f
 
 
-def _first_walls_near(origin_a, origin_b, dir_a, dir_b, line_bits, half: int):
+def _first_walls_near(origin_a, origin_b, dir_a, dir_b, padded, room, half: int):
     """The first wall each beam's two movers meet on the lines ``a = k`` within ``half`` lines
-    of the origin: (ahead (B,), behind (B,)) distances in cell units, BIG if none.
+    of the origin: (ahead (B,), behind (B,)) distances in cell units, BIG if none. ``padded`` is
+    a bank of ``window_bits`` (rooms, g + 2 * half, W + 2), ``room`` the room's index in it.
 
     A beam along (dir_a, dir_b) and its opposite meet every line at the same point; the one that
     moves towards +a meets the lines ahead of the origin (k > origin), entering cell k, the other
@@ -267,51 +281,65 @@ def _first_walls_near(origin_a, origin_b, dir_a, dir_b, line_bits, half: int):
     ``half`` lines, ahead and behind, each crossed once per beam by the mover that meets it, at
     the distance ``|k - origin| / |dir_a|``: every crossing is ahead of its mover and the first
     wall is a plain minimum (no test of the crossing's side, no second pass for the opposite beam).
-    Near the grid's border a half window is moved inside the grid and its lines on the other side
-    of the origin are left out. The walls are read from each line's word on the mover's side of the
-    origin along b (``_side_words``)."""
-    g = line_bits.shape[0]
+    Both halves are one slice of the padded lines (rows fa - half .. fa + half); lines off the grid
+    read as free (beyond the outer wall ring, they cannot change what a beam reports)."""
     fa = jnp.floor(origin_a).astype(jnp.int32)
-    first_ahead = jnp.minimum(fa + 1, g - half)  # lines first_ahead .. + half - 1
-    first_behind = jnp.maximum(fa - half + 1, 1)
-    j = jnp.arange(half, dtype=jnp.int32)
+    j = (jnp.floor(origin_b).astype(jnp.int32) + 1) // 32
+    # padded row fa + i holds cell row fa - half + i; the window is rows fa - half .. fa + half
+    window = jax.lax.dynamic_slice(padded, (room, fa, j), (1, 2 * half + 1, 3))[0]
     inv = 1.0 / jnp.where(jnp.abs(dir_a) < 1e-12, 1e-12, jnp.abs(dir_a))
     # the b-component of the beam's mover towards +a
     b_ahead = dir_b * jnp.where(dir_a < 0, -1.0, 1.0)
+    i = jnp.arange(half, dtype=jnp.int32)
     found = []
-    for rows_from, k, side, sign, b in (
-        (first_ahead, first_ahead + j, first_ahead + j > fa, 1.0, b_ahead),  # enters cell k
-        (first_behind - 1, first_behind + j, first_behind + j <= fa, -1.0, -b_ahead),  # cell k-1
+    for rows, k, sign, b in (
+        (window[half + 1:], fa + 1 + i, 1.0, b_ahead),  # lines fa+1 .. fa+half enter cells k
+        (window[:half], fa - half + 1 + i, -1.0, -b_ahead),  # lines fa-half+1 .. fa enter k - 1
     ):
-        entered = jax.lax.dynamic_slice_in_dim(line_bits, rows_from, half, axis=0)
         t = (sign * (k.astype(jnp.float32)[None, :] - origin_a)) * inv[:, None]  # (B, half)
         idx = jnp.floor(origin_b + t * b[:, None]).astype(jnp.int32)
         if half <= ONE_WORD_HALF:
-            up, down, fb = _side_words(entered, origin_b)
+            up, down, fb = _side_words(rows, origin_b)
             going_up = (b >= 0)[:, None]
             word = jnp.where(going_up, up[None, :], down[None, :])
             bit = jnp.where(going_up, idx - fb, idx - (fb - 31))  # in [0, 32) within range
             wall = (jnp.right_shift(word, (bit & 31).astype(jnp.uint32)) & jnp.uint32(1)) != 0
         else:  # a reach of 31 cells or more: the crossing's cell from the line's whole row
-            wall = read_bit(entered[None, :, :], idx)
-        found.append(jnp.min(jnp.where(wall & side[None, :], t, _BIG), axis=-1))
+            words = padded.shape[-1]
+            full = jax.lax.dynamic_slice(padded, (room, fa, 0), (1, 2 * half + 1, words))[0]
+            part = full[half + 1:] if sign > 0 else full[:half]
+            wall = read_bit(part[None, :, :], idx + 32)  # padded bit of cell idx
+        found.append(jnp.min(jnp.where(wall, t, _BIG), axis=-1))
     return found[0], found[1]
 
 
-def _cast_window(px, py, theta, pos, goal, col_bits, row_bits, num_beams, fov_deg, cell, max_range,
-                 goal_radius, lines):  # fmt: skip
-    """``cast_lidar_bits`` over the lines within range of the robot (see there): ``(lines - 1) / 2``
-    lines on each side of its cell per axis (``_first_walls_near``); an axis with fewer lines (the
-    short side of a non-square room) takes all of its own on both sides.
-
-    Exactly the whole grid's result (a crossing beyond range reads whatever, and cannot change
-    what the beam reports), at about half the work of crossing the window's lines with both beams
-    of a pair and reading each crossing from two words."""
+def cast_lidar_window(
+    pos: jax.Array,
+    theta: jax.Array,
+    goal: jax.Array,
+    col_window: jax.Array,
+    row_window: jax.Array,
+    room: jax.Array | int,
+    num_beams: int,
+    fov_deg: float,
+    cell: jax.Array | float,
+    max_range: jax.Array | float,
+    goal_radius: jax.Array | float,
+    lines: int,
+) -> tuple[jax.Array, jax.Array]:
+    """``cast_lidar_bits`` over the lines within range of the robot (``lidar_window``), from a
+    bank of rooms laid out for it (``window_bits`` of the column- and row-packed walls, room
+    ``room``): ``(lines - 1) / 2`` lines on each side of its cell per axis
+    (``_first_walls_near``). Exactly the whole grid's result (a crossing beyond range reads
+    whatever, and cannot change what the beam reports), at about half the work of crossing the
+    window's lines with both beams of a pair."""
     half = (lines - 1) // 2
+    inv_cell = 1.0 / cell
+    px, py = pos[0] * inv_cell, pos[1] * inv_cell
     paired = lidar_is_paired(num_beams, fov_deg)
     dx, dy = beam_directions(theta, num_beams, fov_deg, num_beams // 2 if paired else num_beams)
-    ahead_x, behind_x = _first_walls_near(px, py, dx, dy, col_bits, min(half, col_bits.shape[0] - 1))
-    ahead_y, behind_y = _first_walls_near(py, px, dy, dx, row_bits, min(half, row_bits.shape[0] - 1))
+    ahead_x, behind_x = _first_walls_near(px, py, dx, dy, col_window, room, half)
+    ahead_y, behind_y = _first_walls_near(py, px, dy, dx, row_window, room, half)
     t_wall = jnp.minimum(jnp.where(dx > 0, ahead_x, behind_x), jnp.where(dy > 0, ahead_y, behind_y))
     if paired:
         t_back = jnp.minimum(jnp.where(dx > 0, behind_x, ahead_x), jnp.where(dy > 0, behind_y, ahead_y))

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from gymnax.environments import environment, spaces
 
-from quicknav_core.env.bits import num_words, pack_rows, pack_rows_np, read_bit, set_bit
+from quicknav_core.env.bits import BankRows, num_words, pack_rows, pack_rows_np, read_bit, set_bit
 from quicknav_core.env.clearance import spawn_cells
 from quicknav_core.env.constants import (
     BIG,
@@ -22,7 +22,12 @@ from quicknav_core.env.constants import (
     observation_bounds,
 )
 from quicknav_core.env.dynamics import drive, move_with_sliding, wall_distance, wheel_command
-from quicknav_core.env.lidar import beam_directions, cast_lidar_packed
+from quicknav_core.env.lidar import (
+    beam_directions,
+    cast_lidar_packed,
+    cast_lidar_window,
+    window_bits,
+)
 from quicknav_core.env.obstacles import (
     OBSTACLE_WORDS,
     absent,
@@ -100,6 +105,11 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         self.randomized = config.randomize is not None
         self.obstacle_count = config.obstacles.count if config.obstacle_counts else 0
         self.reach = config.collision_reach  # 0: narrower than a cell (the four-cell test)
+        # the lidar reads its range window from the bank laid out for it (EnvParams.room_*_window)
+        self.lidar_window = config.lidar_reads_window
+        # rows of more than one word: a step reads the walls near the robot from the bank's room
+        # by index (bits.BankRows), not from the state's own copy of it
+        self.bank_rows = num_words(self.cols) > 1
 
     # Identity: jit treats the env as a static argument. Two envs are the same static argument
     # when their compiled code is the same: the config's compile key (its STATIC fields and what
@@ -201,7 +211,8 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
 
         A randomised env takes the episode's ``perturbation`` too (default: one that changes
         nothing, ``perturb.at_rest``); an env with obstacles its ``obstacles`` (default: none
-        present)."""
+        present). On a grid above 32 cells ``room_index`` must name the bank room whose walls
+        ``walls`` are: the lidar reads the walls near the robot from the bank by index."""
         if params is None:
             params = self.default_params
         if self.randomized and perturbation is None:
@@ -215,6 +226,8 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
                 f" grid_size={self.grid_size}" + ("" if self.rows == self.cols else
                                                   f", grid_rows={self.rows}, grid_cols={self.cols}")
             )
+        if self.lidar_window or self.bank_rows:
+            self._check_bank_room(walls, room_index, params)
         pos = jnp.asarray(pos, jnp.float32).reshape(2)
         rc = self._cell_of(pos, params.room_size / self.grid_size)
         state = self._episode_start(
@@ -229,6 +242,19 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
             state = state.replace(obstacles=given)
         state = self.with_lidar(self.with_plan(state, params), params)
         return self.get_obs(state, params), state
+
+    def _check_bank_room(self, walls: jax.Array, room_index: int, params: EnvParams) -> None:
+        """An env above 32 cells reads the walls near the robot from the bank's rooms by index
+        (``with_lidar``, ``_rows``): a state must name the bank room its walls are."""
+        n = int(params.rooms.shape[0])
+        if not 0 <= int(room_index) < n or not bool(jnp.array_equal(params.rooms[room_index], walls)):
+            raise ValueError(
+                f"load_state: room_index={int(room_index)} must name the bank room whose walls"
+                f" these are (0 .. {n - 1}): on a grid above 32 cells (grid_size={self.grid_size})"
+                " the lidar reads the walls near the robot from the room bank by index. Build the"
+                " env with a room source that holds these walls (rooms='maps') and give the room's"
+                " index"
+            )
 
     def get_obs(self, state: EnvState, params: EnvParams | None = None, key=None) -> jax.Array:
         """Flat float32 observation (layout in the class docstring)."""
@@ -406,13 +432,14 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         delta, theta = drive(
             state.theta, command, params.max_wheel_speed, params.wheel_base, params.dt
         )
-        pos, collided = move_with_sliding(state.pos, delta, state.row_bits, cell, radius, self.reach)
+        rows = self._rows(state, params)
+        pos, collided = move_with_sliding(state.pos, delta, rows, cell, radius, self.reach)
         obstacles = state.obstacles
         if obstacles is not None:
             # a move into an obstacle is not made (no sliding around a disc); then people walk
             hit = overlaps(pos, radius, obstacles)
             pos, collided = jnp.where(hit, state.pos, pos), collided | hit
-            obstacles = move_obstacles(obstacles, state.row_bits, cell, params.dt, pos, radius)
+            obstacles = move_obstacles(obstacles, rows, cell, params.dt, pos, radius)
         rc = self._cell_of(pos, cell)
         entered = jnp.any(rc != state.cell)
         seen = read_bit(state.visited_bits[rc[0]], rc[1])
@@ -432,7 +459,7 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
             path = jnp.where(jnp.all(pos == state.pos), path_prev,
                              path_length_from(metres, pos, params.room_size, 1))  # fmt: skip
         # how close the robot's edge came to a wall or an obstacle (the proximity term)
-        near = wall_distance(pos, state.row_bits, cell)
+        near = wall_distance(pos, rows, cell)
         if obstacles is not None:
             gaps = jnp.linalg.norm(obstacles.pos - pos[None, :], axis=-1) - obstacles.radius
             near = jnp.minimum(near, jnp.min(jnp.where(obstacles.radius > 0.0, gaps, BIG)))
@@ -464,8 +491,21 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
         }
         return moved, total_reward(terms), info
 
+    def _rows(self, state: EnvState, params: EnvParams):
+        """The room's packed rows a step reads near the robot: the bank's, by the state's room
+        index (``bank_rows``), or the state's own."""
+        return BankRows(params.room_row_bits, state.room_index) if self.bank_rows else state.row_bits
+
     def with_lidar(self, state: EnvState, params: EnvParams) -> EnvState:
         """State with the lidar scan of its current pose."""
+        if self.lidar_window:  # the room's lines near the robot, read from the bank by its index
+            ranges, hits = cast_lidar_window(
+                state.pos, state.theta, state.goal, params.room_col_window, params.room_row_window,
+                state.room_index, self.num_beams, self.config.lidar_fov_deg,
+                params.room_size / self.grid_size, params.lidar_max_range, params.goal_radius,
+                self.config.lidar_lines,
+            )  # fmt: skip
+            return self._with_unmapped(state, params, ranges, hits)
         ranges, hits = cast_lidar_packed(self.config.lidar_method)(
             state.pos,
             state.theta,
@@ -479,6 +519,11 @@ class QuickNavEnv(environment.Environment[EnvState, EnvParams]):
             params.goal_radius,
             self.config.lidar_lines,
         )
+        return self._with_unmapped(state, params, ranges, hits)
+
+    def _with_unmapped(self, state: EnvState, params: EnvParams, ranges, hits) -> EnvState:
+        """State with the scan of the walls ``ranges``/``hits``, the obstacles the map does not
+        show seen in it, and the sensor's perturbation."""
         if state.obstacles is not None:  # the discs the map does not show, seen as walls
             dx, dy = beam_directions(state.theta, self.num_beams, self.config.lidar_fov_deg)
             t_obs = ray_distances(state.pos, dx, dy, state.obstacles)
@@ -533,14 +578,23 @@ def make_params(config: EnvConfig, split: Split = "train", rooms: RoomSource | N
     source = rooms if rooms is not None else room_source(config)
     bank = source.bank(check_split(split))
     free, counts = free_cell_table(~spawn_cells(bank, config, split))
+    col_bits = jnp.asarray(pack_rows_np(np.swapaxes(bank, 1, 2)))
+    row_bits = jnp.asarray(pack_rows_np(bank))
+    window = {}
+    if config.lidar_reads_window:
+        lines = config.lidar_lines
+        window = {"room_col_window": window_bits(col_bits, lines),
+                  "room_row_window": window_bits(row_bits, lines)}  # fmt: skip
     return EnvParams(
         rooms=jnp.asarray(bank),
-        room_col_bits=jnp.asarray(pack_rows_np(np.swapaxes(bank, 1, 2))),
-        room_row_bits=jnp.asarray(pack_rows_np(bank)),
+        room_col_bits=col_bits,
+        room_row_bits=row_bits,
         free_cells=jnp.asarray(free),
         num_free=jnp.asarray(counts),
         **traced_numbers(config),
+        **window,
     )
+
 
 
 def build_env(config: EnvConfig, split: Split = "train", runtime: Runtime | None = None

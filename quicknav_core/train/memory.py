@@ -107,6 +107,9 @@ def bank_bytes(env: EnvConfig, split: str = "train") -> int:
     rows, cols = env.grid_shape
     # bool walls, row- and column-packed bits, the free-cell table, its count
     per_room = rows * cols + (rows * _words(cols) + cols * _words(rows)) * 4 + rows * cols * 4 + 4
+    if env.lidar_reads_window:  # the packed bits laid out for the lidar's window, padded
+        half = (env.lidar_lines - 1) // 2
+        per_room += ((rows + 2 * half) * (_words(cols) + 2) + (cols + 2 * half) * (_words(rows) + 2)) * 4
     if split == "test":
         rooms = env.test_rooms + (0 if env.rooms == "maps" else env.train_rooms)
     else:

@@ -144,3 +144,51 @@ def test_env_and_params__concurrent_starts_of_one_config_build_it_once(monkeypat
     for t in threads:
         t.join(60)
     assert calls == ["train"] and len(out) == 3 and all(o is out[0] for o in out)
+
+
+def test_bank_walls__above_32_cells_a_step_reads_the_bank_as_it_read_the_state():
+    """On a grid above 32 cells the lidar's window and the rows that the collision test, the
+    proximity term and the people's walk read come from the room bank by the state's room index:
+    nothing in a step reads the state's own copy of its room (XLA copied it twice a step, as a
+    buffer read and then rewritten in place by the resets). The same episodes step exactly as
+    when every read came from that copy (the code before), with people walking, a plan, and
+    resets inside the run."""
+    from quicknav_core.env.quicknav import QuickNavEnv
+
+    cfg = EnvConfig(rooms="floorplan", grid_size=48, room_size=24.0, lidar_beams=16, train_rooms=8,
+                    test_rooms=2, max_steps=25, obstacles={"static": 2, "moving": 3},
+                    observe_plan=True, reward={"proximity_penalty": 0.5})  # fmt: skip
+    env, params = cfg.build("train")
+    assert env.lidar_window and env.bank_rows and params.room_col_window is not None
+    own = QuickNavEnv(cfg, env.rooms)  # the same env, reading its state's copy of the room
+    own.lidar_window = own.bank_rows = False
+    n = 32
+    _, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(jax.random.PRNGKey(4), n), params)
+    # (the two envs are equal as jit's static arguments: each gets its own jitted function)
+    steps = [jax.jit(lambda k, s, a, e=e: batched_step(e, k, s, a, params)) for e in (env, own)]
+    states = [state, state]
+    rng, ended, collisions = np.random.default_rng(2), 0, 0
+    for t in range(40):
+        keys = jax.random.split(jax.random.PRNGKey(50 + t), n)
+        action = jnp.asarray(rng.uniform(-1, 1, (n, 2)), jnp.float32)
+        out = []
+        for i in range(2):
+            obs, states[i], reward, info, _ = steps[i](keys, states[i], action)
+            out.append((np.asarray(obs), np.asarray(reward), np.asarray(info["collision"]),
+                        np.asarray(info["terminated"] | info["truncated"])))  # fmt: skip
+        for a, b in zip(*out, strict=True):
+            np.testing.assert_array_equal(a, b)
+        ended, collisions = ended + int(out[0][3].sum()), collisions + int(out[0][2].sum())
+    assert ended >= n and collisions > 20  # episodes ended and began again; walls were hit
+    np.testing.assert_array_equal(np.asarray(states[0].row_bits), np.asarray(states[1].row_bits))
+    # a state made by hand names the bank room its walls are: the lidar reads the bank by index
+    room = int(states[0].room_index[0])
+    walls, pos, goal = (np.asarray(x[0]) for x in (states[0].walls, states[0].pos, states[0].goal))
+    with pytest.raises(ValueError, match=r"room_index=-1 must name the bank room .* \(0 \.\. 7\)"):
+        env.load_state(walls, pos, 0.3, goal, params)
+    other = (room + 1) % 8  # another room of the bank: other walls
+    with pytest.raises(ValueError, match=rf"room_index={other} must name the bank room"):
+        env.load_state(walls, pos, 0.3, goal, params, room_index=other)
+    _, loaded = env.load_state(walls, pos, 0.3, goal, params, room_index=room)
+    _, by_hand = own.load_state(walls, pos, 0.3, goal, params)
+    np.testing.assert_array_equal(np.asarray(loaded.lidar_ranges), np.asarray(by_hand.lidar_ranges))
