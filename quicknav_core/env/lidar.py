@@ -35,7 +35,7 @@ from quicknav_core.env.constants import HIT_GOAL, HIT_NONE, HIT_WALL, beam_angle
 __all__ = [
     "FASTEST_LIDAR", "LIDAR_METHODS", "beam_angles", "cast_lidar", "cast_lidar_bits",
     "cast_lidar_dda", "cast_lidar_packed", "cast_lidar_window", "lidar_is_paired", "lidar_window",
-    "ray_disc", "resolve_lidar_method", "uses_window", "window_bits",
+    "ray_disc", "resolve_lidar_method", "side_words", "uses_window", "window_bits",
 ]  # fmt: skip
 
 LIDAR_METHODS = ("crossings", "dda")
@@ -227,9 +227,11 @@ def lidar_window(grid_size: int, cell: float, max_range: float) -> int:
     return min(grid_size - 1, 2 * reach + 3)
 
 
-# the largest half window whose crossings within range all lie within 31 cells of the origin
-# along the other axis (a reach of half - 1 cells and one more for rounding): one word each
-ONE_WORD_HALF = 31
+def side_words(lines: int) -> int:
+    """Words per side of the robot that hold every cell a crossing within range can enter along
+    the other axis: the window's ``(lines - 1) / 2`` lines a side (a reach and one more for
+    rounding) and the robot's own cell, 32 cells a word (one word up to a reach of 30 cells)."""
+    return -(-((lines - 1) // 2 + 1) // 32)
 
 
 def uses_window(grid_size: int, lines: int | None) -> bool:
@@ -239,41 +241,67 @@ def uses_window(grid_size: int, lines: int | None) -> bool:
 
 
 def window_bits(line_bits: jax.Array, lines: int) -> jax.Array:
-    """(..., g, W) packed lines -> (..., g + 2h, W + 2), h = (lines - 1) // 2: the lines with h
-    free lines before and after them and a free word on either side, so that the window of any
-    robot's cell is one slice, the same for every cell (``EnvParams.room_col_window``)."""
-    half = (lines - 1) // 2
-    pad = [(0, 0)] * (line_bits.ndim - 2) + [(half, half), (1, 1)]
+    """(..., g, W) packed lines -> (..., g + 2h, W + 2m), h = (lines - 1) // 2, m =
+    ``side_words(lines)``: the lines with h free lines before and after them and m free words on
+    either side, so that the window of any robot's cell is one slice, the same for every cell
+    (``EnvParams.room_col_window``). Bit q of a padded line is cell q - 32m."""
+    half, m = (lines - 1) // 2, side_words(lines)
+    pad = [(0, 0)] * (line_bits.ndim - 2) + [(half, half), (m, m)]
     return jnp.pad(line_bits, pad)
 
 
-def _side_words(window: jax.Array, origin_b: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """Each line's cells next to the origin along the other axis, as two words: ``up`` holds cells
-    f .. f+31 (bit i: cell f + i) and ``down`` cells f-31 .. f (bit i: cell f - 31 + i), where
-    f = floor(origin_b); ``window`` is (lines, 3): the padded row's words j .. j + 2 (bit q of a
-    padded row: cell q - 32), j = (f + 1) // 32. Returns (up (lines,), down (lines,), f).
+def _side_words(window: jax.Array, origin_b: jax.Array, m: int):
+    """Each line's cells next to the origin along the other axis, ``m`` words a side: ``up``
+    (lines, m) holds cells f .. f + 32m - 1 (bit i of the whole: cell f + i), ``down`` cells
+    f - 32m + 1 .. f (bit i: cell f - 32m + 1 + i), where f = floor(origin_b); ``window`` is
+    (lines, 2m + 1): a padded line's words j .. j + 2m (``window_bits``), j = (f + 1) // 32.
+    Returns (up, down, f).
 
     A beam whose component along the other axis is >= 0 enters, within range, only cells
-    f .. f + reach, and one whose component is negative only cells f - reach .. f: with a reach
-    of at most 30 cells (``ONE_WORD_HALF``) either reads each of its crossings from one word, by
-    a shift."""
+    f .. f + reach, and one whose component is negative only cells f - reach .. f: either reads
+    each of its crossings from its own side's words by a shift (and, beyond a reach of 30 cells,
+    a choice of word)."""
     f = jnp.floor(origin_b).astype(jnp.int32)
     j = (f + 1) // 32
+    r = ((f + 1) % 32).astype(jnp.uint32)
 
-    def cells_from(q: jax.Array) -> jax.Array:  # 32 cells from padded bit q, q in [32j, 32j + 64)
-        first = q // 32 - j  # 0 or 1
-        lo = jnp.where(first == 0, window[:, 0], window[:, 1])
-        hi = jnp.where(first == 0, window[:, 1], window[:, 2])
-        r = (q % 32).astype(jnp.uint32)
-        return jnp.right_shift(lo, r) | jnp.left_shift(hi, jnp.uint32(32) - r)  # a shift by 32: 0
+    def funnel(first: int | jax.Array, shift: jax.Array) -> jax.Array:  # 32 bits from a word's bit
+        if isinstance(first, int):
+            lo, hi = window[:, first], window[:, first + 1]
+        else:  # first is m + w - 1 or m + w
+            lo = jnp.where(first == 0, window[:, 0], window[:, 1])
+            hi = jnp.where(first == 0, window[:, 1], window[:, 2])
+        return jnp.right_shift(lo, shift) | jnp.left_shift(hi, jnp.uint32(32) - shift)  # 32: 0
 
-    return cells_from(f + 32), cells_from(f + 1), f
+    # down word w: cells from f - 32m + 1 + 32w, padded bit f + 1 + 32w: word j + w, bit r
+    down = [funnel(w, r) for w in range(m)]
+    # up word w: cells from f + 32w, padded bit f + 32(m + w): word j + m + w - 1 or j + m + w
+    q = f + 32 * m
+    up_r = (q % 32).astype(jnp.uint32)
+    late = (q // 32 - j) - m  # -1 or 0
+    up = []
+    for w in range(m):
+        part = window[:, m + w - 1:m + w + 2]  # words m + w - 1 .. m + w + 1 of the slice
+        lo = jnp.where(late < 0, part[:, 0], part[:, 1])
+        hi = jnp.where(late < 0, part[:, 1], part[:, 2])
+        up.append(jnp.right_shift(lo, up_r) | jnp.left_shift(hi, jnp.uint32(32) - up_r))
+    return jnp.stack(up, axis=1), jnp.stack(down, axis=1), f
 
 
-def _first_walls_near(origin_a, origin_b, dir_a, dir_b, padded, room, half: int):
+def _read(words: jax.Array, bit: jax.Array) -> jax.Array:
+    """Bit ``bit`` (B, lines) of each line's side words (lines, m), m small: where it lies in
+    [0, 32m) (a crossing within range), what the word holds; beyond, whatever (out of range)."""
+    m = words.shape[-1]
+    word = words[None, :, 0]
+    for w in range(1, m):
+        word = jnp.where(bit >= 32 * w, words[None, :, w], word)
+    return (jnp.right_shift(word, (bit & 31).astype(jnp.uint32)) & jnp.uint32(1)) != 0
+
+
+def _first_walls_near(origin_a, origin_b, dir_a, dir_b, padded, room, half: int, m: int):
     """The first wall each beam's two movers meet on the lines ``a = k`` within ``half`` lines
     of the origin: (ahead (B,), behind (B,)) distances in cell units, BIG if none. ``padded`` is
-    a bank of ``window_bits`` (rooms, g + 2 * half, W + 2), ``room`` the room's index in it.
+    a bank of ``window_bits`` (rooms, g + 2 * half, W + 2m), ``room`` the room's index in it.
 
     A beam along (dir_a, dir_b) and its opposite meet every line at the same point; the one that
     moves towards +a meets the lines ahead of the origin (k > origin), entering cell k, the other
@@ -286,7 +314,7 @@ def _first_walls_near(origin_a, origin_b, dir_a, dir_b, padded, room, half: int)
     fa = jnp.floor(origin_a).astype(jnp.int32)
     j = (jnp.floor(origin_b).astype(jnp.int32) + 1) // 32
     # padded row fa + i holds cell row fa - half + i; the window is rows fa - half .. fa + half
-    window = jax.lax.dynamic_slice(padded, (room, fa, j), (1, 2 * half + 1, 3))[0]
+    window = jax.lax.dynamic_slice(padded, (room, fa, j), (1, 2 * half + 1, 2 * m + 1))[0]
     inv = 1.0 / jnp.where(jnp.abs(dir_a) < 1e-12, 1e-12, jnp.abs(dir_a))
     # the b-component of the beam's mover towards +a
     b_ahead = dir_b * jnp.where(dir_a < 0, -1.0, 1.0)
@@ -298,17 +326,14 @@ def _first_walls_near(origin_a, origin_b, dir_a, dir_b, padded, room, half: int)
     ):
         t = (sign * (k.astype(jnp.float32)[None, :] - origin_a)) * inv[:, None]  # (B, half)
         idx = jnp.floor(origin_b + t * b[:, None]).astype(jnp.int32)
-        if half <= ONE_WORD_HALF:
-            up, down, fb = _side_words(rows, origin_b)
-            going_up = (b >= 0)[:, None]
-            word = jnp.where(going_up, up[None, :], down[None, :])
+        up, down, fb = _side_words(rows, origin_b, m)
+        going_up = (b >= 0)[:, None]
+        if m == 1:
+            word = jnp.where(going_up, up[None, :, 0], down[None, :, 0])
             bit = jnp.where(going_up, idx - fb, idx - (fb - 31))  # in [0, 32) within range
             wall = (jnp.right_shift(word, (bit & 31).astype(jnp.uint32)) & jnp.uint32(1)) != 0
-        else:  # a reach of 31 cells or more: the crossing's cell from the line's whole row
-            words = padded.shape[-1]
-            full = jax.lax.dynamic_slice(padded, (room, fa, 0), (1, 2 * half + 1, words))[0]
-            part = full[half + 1:] if sign > 0 else full[:half]
-            wall = read_bit(part[None, :, :], idx + 32)  # padded bit of cell idx
+        else:
+            wall = jnp.where(going_up, _read(up, idx - fb), _read(down, idx - (fb - 32 * m + 1)))
         found.append(jnp.min(jnp.where(wall, t, _BIG), axis=-1))
     return found[0], found[1]
 
@@ -333,13 +358,13 @@ def cast_lidar_window(
     (``_first_walls_near``). Exactly the whole grid's result (a crossing beyond range reads
     whatever, and cannot change what the beam reports), at about half the work of crossing the
     window's lines with both beams of a pair."""
-    half = (lines - 1) // 2
+    half, m = (lines - 1) // 2, side_words(lines)
     inv_cell = 1.0 / cell
     px, py = pos[0] * inv_cell, pos[1] * inv_cell
     paired = lidar_is_paired(num_beams, fov_deg)
     dx, dy = beam_directions(theta, num_beams, fov_deg, num_beams // 2 if paired else num_beams)
-    ahead_x, behind_x = _first_walls_near(px, py, dx, dy, col_window, room, half)
-    ahead_y, behind_y = _first_walls_near(py, px, dy, dx, row_window, room, half)
+    ahead_x, behind_x = _first_walls_near(px, py, dx, dy, col_window, room, half, m)
+    ahead_y, behind_y = _first_walls_near(py, px, dy, dx, row_window, room, half, m)
     t_wall = jnp.minimum(jnp.where(dx > 0, ahead_x, behind_x), jnp.where(dy > 0, ahead_y, behind_y))
     if paired:
         t_back = jnp.minimum(jnp.where(dx > 0, behind_x, ahead_x), jnp.where(dy > 0, behind_y, ahead_y))

@@ -108,8 +108,11 @@ def bank_bytes(env: EnvConfig, split: str = "train") -> int:
     # bool walls, row- and column-packed bits, the free-cell table, its count
     per_room = rows * cols + (rows * _words(cols) + cols * _words(rows)) * 4 + rows * cols * 4 + 4
     if env.lidar_reads_window:  # the packed bits laid out for the lidar's window, padded
-        half = (env.lidar_lines - 1) // 2
-        per_room += ((rows + 2 * half) * (_words(cols) + 2) + (cols + 2 * half) * (_words(rows) + 2)) * 4
+        from quicknav_core.env.lidar import side_words
+
+        half, m = (env.lidar_lines - 1) // 2, side_words(env.lidar_lines)
+        per_room += ((rows + 2 * half) * (_words(cols) + 2 * m)
+                     + (cols + 2 * half) * (_words(rows) + 2 * m)) * 4  # fmt: skip
     if split == "test":
         rooms = env.test_rooms + (0 if env.rooms == "maps" else env.train_rooms)
     else:

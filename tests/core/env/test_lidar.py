@@ -169,19 +169,20 @@ def test_lidar_method__envs_step_identically_with_either_caster():
     (64, 64, 360.0, 2.6, 11),  # 2 words per row
     (128, 64, 360.0, 2.6, 11),  # 4 words per row
     (96, 15, 270.0, 4.1, 17),  # unpaired beams: each one's own side of every line
-    (100, 16, 360.0, 7.6, 31),  # a reach past one word: each crossing read from its whole row
+    (100, 16, 360.0, 7.6, 31),  # a reach past one word: two words a side
+    (200, 16, 360.0, 16.1, 65),  # three words a side
 ])  # fmt: skip
 def test_lidar__range_window_sees_what_the_whole_grid_sees(g, beams, fov, max_range, reach):
     """The caster crosses only the lines within range of the robot (``lidar_window``), on each
     side of it only those the beam moving that way meets: on sparse walls, where many hits lie
     near the range's edge and near the grid's border, it returns exactly what crossing every line
     of the grid returns."""
-    from quicknav_core.env.lidar import ONE_WORD_HALF, lidar_window
+    from quicknav_core.env.lidar import lidar_window, side_words
 
     cell = 0.25
     lines = lidar_window(g, cell, max_range)
     assert lines == 2 * reach + 3
-    assert (reach + 1 > ONE_WORD_HALF) == (reach == 31)  # the last case takes the other read
+    assert side_words(lines) == 1 + (reach > 30) + (reach > 62)  # a word a side up to 30 cells
     rng = np.random.default_rng(3)
     n = 25_600 // beams  # the same number of beams in every case
     # walls as sparse as the range is long: a beam's free path is about the range
@@ -195,6 +196,7 @@ def test_lidar__range_window_sees_what_the_whole_grid_sees(g, beams, fov, max_ra
     whole_r, whole_h = map(np.asarray, cast_batch(*args, None))
     assert (window_h == whole_h).all()
     np.testing.assert_array_equal(window_r, whole_r)
-    # the sample reaches the range's edge: walls hit in its last cell, and beams that see nothing
-    hit = whole_h == HIT_WALL
-    assert (whole_r[hit] > max_range - cell).sum() > 200 and (whole_h == HIT_NONE).sum() > 200
+    # the sample reaches the range's edge: walls hit in its last cell (its last 4 % for a long
+    # range), and beams that see nothing
+    hit, edge = whole_h == HIT_WALL, max(cell, 0.04 * max_range)
+    assert (whole_r[hit] > max_range - edge).sum() > 200 and (whole_h == HIT_NONE).sum() > 200
