@@ -288,7 +288,7 @@ def _side_words(window: jax.Array, origin_b: jax.Array, m: int):
     return jnp.stack(up, axis=1), jnp.stack(down, axis=1), f
 
 
-def _read(words: jax.Array, bit: jax.Array) -> jax.Array:
+def _side_bit(words: jax.Array, bit: jax.Array) -> jax.Array:
     """Bit ``bit`` (B, lines) of each line's side words (lines, m), m small: where it lies in
     [0, 32m) (a crossing within range), what the word holds; beyond, whatever (out of range)."""
     m = words.shape[-1]
@@ -333,7 +333,8 @@ def _first_walls_near(origin_a, origin_b, dir_a, dir_b, padded, room, half: int,
             bit = jnp.where(going_up, idx - fb, idx - (fb - 31))  # in [0, 32) within range
             wall = (jnp.right_shift(word, (bit & 31).astype(jnp.uint32)) & jnp.uint32(1)) != 0
         else:
-            wall = jnp.where(going_up, _read(up, idx - fb), _read(down, idx - (fb - 32 * m + 1)))
+            down_bit = idx - (fb - 32 * m + 1)
+            wall = jnp.where(going_up, _side_bit(up, idx - fb), _side_bit(down, down_bit))
         found.append(jnp.min(jnp.where(wall, t, _BIG), axis=-1))
     return found[0], found[1]
 
