@@ -265,16 +265,11 @@ def _side_words(window: jax.Array, origin_b: jax.Array, m: int):
     j = (f + 1) // 32
     r = ((f + 1) % 32).astype(jnp.uint32)
 
-    def funnel(first: int | jax.Array, shift: jax.Array) -> jax.Array:  # 32 bits from a word's bit
-        if isinstance(first, int):
-            lo, hi = window[:, first], window[:, first + 1]
-        else:  # first is m + w - 1 or m + w
-            lo = jnp.where(first == 0, window[:, 0], window[:, 1])
-            hi = jnp.where(first == 0, window[:, 1], window[:, 2])
+    def funnel(lo: jax.Array, hi: jax.Array, shift: jax.Array) -> jax.Array:  # 32 bits of hi:lo from bit shift
         return jnp.right_shift(lo, shift) | jnp.left_shift(hi, jnp.uint32(32) - shift)  # 32: 0
 
     # down word w: cells from f - 32m + 1 + 32w, padded bit f + 1 + 32w: word j + w, bit r
-    down = [funnel(w, r) for w in range(m)]
+    down = [funnel(window[:, w], window[:, w + 1], r) for w in range(m)]
     # up word w: cells from f + 32w, padded bit f + 32(m + w): word j + m + w - 1 or j + m + w
     q = f + 32 * m
     up_r = (q % 32).astype(jnp.uint32)
@@ -284,7 +279,7 @@ def _side_words(window: jax.Array, origin_b: jax.Array, m: int):
         part = window[:, m + w - 1:m + w + 2]  # words m + w - 1 .. m + w + 1 of the slice
         lo = jnp.where(late < 0, part[:, 0], part[:, 1])
         hi = jnp.where(late < 0, part[:, 1], part[:, 2])
-        up.append(jnp.right_shift(lo, up_r) | jnp.left_shift(hi, jnp.uint32(32) - up_r))
+        up.append(funnel(lo, hi, up_r))
     return jnp.stack(up, axis=1), jnp.stack(down, axis=1), f
 
 

@@ -596,7 +596,6 @@ def make_params(config: EnvConfig, split: Split = "train", rooms: RoomSource | N
     )
 
 
-
 def build_env(config: EnvConfig, split: Split = "train", runtime: Runtime | None = None
               ) -> tuple[QuickNavEnv, EnvParams]:  # fmt: skip
     """The env and its params for one split (``EnvConfig.build`` calls this)."""

@@ -143,7 +143,8 @@ class EnvParams:
     # Obstacles the map does not show (``env.obstacles``; None: none)
     obstacles: ObstacleRanges | None = None
     # The bank laid out for the lidar's range window (``lidar.window_bits``: every room's packed
-    # lines with (lines - 1) / 2 free lines and a free word around them), for an env whose lidar
-    # crosses only the lines within range (grids above 32 cells); None otherwise
-    room_col_window: jax.Array | None = None  # (rooms, cols + 2h, Wr + 2) uint32
-    room_row_window: jax.Array | None = None  # (rooms, rows + 2h, Wc + 2) uint32
+    # lines with h = (lines - 1) // 2 free lines and m = ``lidar.side_words`` free words around
+    # them), for an env whose lidar crosses only the lines within range (grids above 32 cells);
+    # None otherwise
+    room_col_window: jax.Array | None = None  # (rooms, cols + 2h, Wr + 2m) uint32
+    room_row_window: jax.Array | None = None  # (rooms, rows + 2h, Wc + 2m) uint32
