@@ -8,8 +8,9 @@ at -O0) and without XLA's newer CPU fusion emitters: the GTrXL equality test's c
 machine code in one piece (``--xla_cpu_parallel_codegen_split_count=1``): XLA splits it for its
 threads by default, which on a run whose processes already keep both cores busy only adds work
 (the networks and randomisation tests: 42.0 and 41.6 CPU-s split, 37.7 and 39.3 in one piece,
-2-core Intel Xeon VM; a user's -O3 compile of the demo training gained nothing, so it stays as is). Programs compiled so run slower
-(the demo training takes 42 s instead of 28), so what mostly runs keeps a user's settings:
+2-core Intel Xeon VM; a user's -O3 compile of the demo training gained nothing, so it stays as
+is). Programs compiled so run slower (the demo training takes 42 s instead of 28), so what mostly
+runs keeps a user's settings:
 
 - the trainings that reach a target (``tests/trained.py``), memory admission's measured processes
   (a worker's peak is what it measures) and README's journeys (run as a user runs them) start
