@@ -55,11 +55,12 @@ EVAL_RUNTIME_BYTES = 685 * MB
 # (``deferred_imports``): 60-150 MB lower per case than before (2-core AMD EPYC VM). Before that,
 # GTrXL at 2,048 envs measured 1,336 MB on that VM and 1,377 MB on an Intel Xeon VM, and PPO with
 # the MLP 7-12 % higher on the Intel VM than on the AMD one: the GTrXL constant keeps a margin for
-# that (unmeasured since). PPO's kept one too (885 MB) until a CI run on a 2-core AMD EPYC VM read
-# ppo-mlp-2048 at 865 MB, twice, and the estimate sat 11 % above it: the same case reads 904-918 MB
-# on a quiet 2-core AMD EPYC (Zen 4) VM, 884-911 MB with both cores busy beside it (as the test
-# suite's other worker keeps them; XLA's compile threads overlap less), 935 MB in the recorded
-# benchmark, so the constant sits in the middle of 865-935 MB (2026-12)
+# that (unmeasured since). PPO's kept one too (885 MB) until a CI run (2 cores; what it printed
+# does not name its CPU) read ppo-mlp-2048 at 865 MB, twice, and the estimate sat 11 % above it:
+# the same case reads 904-918 MB on a quiet 2-core AMD EPYC (Zen 4) VM, 884-911 MB with both
+# cores busy beside it (as the test suite's other worker keeps them; XLA's compile threads
+# overlap less), 935 MB in the recorded benchmark, so the constant sits in the middle of
+# 865-935 MB (2026-12)
 TRAIN_RUNTIME_BYTES = {
     "rejax-ppo": 855 * MB,
     "rejax-sac": 1010 * MB,
