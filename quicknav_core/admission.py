@@ -64,6 +64,9 @@ class Limits:
     max_sweep_trials: int | None = None
     max_devices: int | None = None  # devices one job may span
     max_job_memory_mb: int | None = None
+    # a wide robot is checked against at most this many rooms of each bank (None: every room);
+    # a door that does not build the env sets it (clearance.check_fit)
+    fit_rooms: int | None = None
     stored_maps_only: bool = False  # a server reads only maps uploaded to it (``map:<id>``)
     own_sweep_storage: bool = False  # a server keeps a sweep's study itself
     owner: str = "this machine's"  # whose limits, in messages
@@ -140,7 +143,7 @@ def rooms(env: EnvConfig, limits: Limits, runtime: Runtime | None, loc: Loc, pre
         if items:
             return items
     try:
-        check_fit(env, source)
+        check_fit(env, source, at_most=limits.fit_rooms)
     except ValueError as e:
         named = str(e).split(":", 1)[0]
         where = named if named in ("robot_radius", "randomize.robot_radius_m") else "robot_radius"

@@ -65,9 +65,10 @@ def spawn_regions(rooms: np.ndarray, cell: float, radius: float) -> np.ndarray:
     return np.stack([spawn_region(r, cell, radius) for r in rooms])
 
 
-def spawn_cells(rooms: np.ndarray, config, split: str) -> np.ndarray:
+def spawn_cells(rooms: np.ndarray, config, split: str, of: int | None = None) -> np.ndarray:
     """(n, rows, cols) bool: where the episodes of each room of a bank start and end. A ValueError
-    names the robot's radius when some room has no two cells it fits in."""
+    names the robot's radius when some room has no two cells it fits in (``of``: the bank's size
+    when ``rooms`` are its first rooms only)."""
     radius, cell = config.spawn_radius, config.cell_size
     regions = spawn_regions(rooms, cell, radius)
     counts = regions.reshape(len(regions), -1).sum(axis=1)
@@ -76,7 +77,8 @@ def spawn_cells(rooms: np.ndarray, config, split: str) -> np.ndarray:
         field = "randomize.robot_radius_m" if radius > config.robot_radius else "robot_radius"
         raise ValueError(
             f"{field}: a robot of radius {radius:g} m fits in fewer than two cells of {short.size}"
-            f" of the {len(rooms)} {split} rooms (room {int(short[0])} first): the disc (diameter"
+            f" of the {_rooms_checked(len(rooms), of)} {split} rooms (room {int(short[0])} first):"
+            " the disc (diameter"
             f" {2 * radius:g} m) is wider than their passages of {cell:g} m cells. Use a smaller"
             " robot, larger cells (room_size / grid_size), or wider passages (floorplan.door_width,"
             " floorplan.corridor_width)"
@@ -84,11 +86,19 @@ def spawn_cells(rooms: np.ndarray, config, split: str) -> np.ndarray:
     return regions
 
 
-def check_fit(config, rooms) -> None:
+def _rooms_checked(n: int, of: int | None) -> str:
+    return f"first {n} of the {of:,}" if of is not None and of > n else str(n)
+
+
+def check_fit(config, rooms, at_most: int | None = None) -> None:
     """For a robot wider than a cell, build the banks of ``rooms`` (a room source) and check that
     it fits in every room (``spawn_cells``'s ValueError), before anything compiles or trains;
-    nothing to do otherwise."""
+    nothing to do otherwise. ``at_most``: check the first that many rooms of each bank only (a
+    door that does not build the env: a service's API, which must not carve a million rooms to
+    answer one request; the worker's env build checks every room and fails the job naming the
+    same field)."""
     if not config.collision_reach:
         return
+    checked = rooms if at_most is None else rooms.first(at_most)
     for split in ("train", "test"):
-        spawn_cells(rooms.bank(split), config, split)
+        spawn_cells(checked.bank(split), config, split, of=rooms.count(split))

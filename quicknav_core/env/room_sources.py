@@ -76,6 +76,18 @@ class RoomSource:
     def count(self, split: Split) -> int:
         return self.config.train_rooms if split == "train" else self.config.test_rooms
 
+    def first(self, n: int) -> RoomSource:
+        """This source over the first ``n`` rooms of each bank (all of a bank with fewer): what a
+        door that does not build the env checks a wide robot against (``clearance.check_fit``).
+        Room ``i`` is drawn from its own index, so room ``i`` of a bank of ``n`` is room ``i`` of
+        any longer one (the test bank, which drops the train bank's layouts, may hold a layout
+        the full train bank has further on: still a room of the same generator)."""
+        c = self.config
+        if c.train_rooms <= n and c.test_rooms <= n:
+            return self
+        fewer = c.model_copy(update={"train_rooms": min(c.train_rooms, n), "test_rooms": min(c.test_rooms, n)})
+        return type(self)(fewer, self.runtime)
+
     def key(self, split: Split) -> str:
         """What the ``split`` bank depends on, as a file-name-safe digest."""
         c = self.config
@@ -241,6 +253,11 @@ class MapRooms(RoomSource):
     def check(self) -> None:
         for split in ("train", "test") if self.config.maps.test else ("train",):
             self.rooms(split)
+
+    def first(self, n: int) -> RoomSource:
+        # every map at least once: the banks repeat the maps, so these are all their rooms
+        m = self.config.maps
+        return super().first(max(n, len(m.train), len(m.test or [])))
 
 
 ROOM_SOURCES: MappingProxyType[str, type[RoomSource]] = MappingProxyType(

@@ -16,6 +16,12 @@ from typing import Any
 from quicknav_core.admission import Limits
 from quicknav_service.settings import Settings
 
+# the rooms of each bank the API checks a wide robot against before it queues a job: the API does
+# not build envs, and one request must not carve 200,000 rooms (a fuzzed train job held the API's
+# request ~100 s on 2 cores doing so); the worker's env build checks every room and fails the job
+# with the same message
+FIT_ROOMS = 256
+
 
 def server_limits(s: Settings) -> Limits:
     """What this server admits, from its settings; messages name the variable that raises each."""
@@ -23,7 +29,8 @@ def server_limits(s: Settings) -> Limits:
         max_grid_size=s.max_grid_size, max_lidar_beams=s.max_lidar_beams, max_envs=s.max_envs,
         max_total_steps=s.max_total_steps, max_eval_episodes=s.max_eval_episodes,
         max_sweep_trials=s.max_sweep_trials, max_devices=s.max_devices,
-        max_job_memory_mb=s.max_job_memory_mb, stored_maps_only=True, own_sweep_storage=True,
+        max_job_memory_mb=s.max_job_memory_mb, fit_rooms=FIT_ROOMS, stored_maps_only=True,
+        own_sweep_storage=True,
         owner="this server's", setting=lambda name: f" (QUICKNAV_{name.upper()})",
     )  # fmt: skip
 

@@ -109,3 +109,28 @@ def test_one_door__a_start_with_a_million_rooms_is_refused_by_its_memory_before_
     assert start.value.code.name == "RESOURCE_EXHAUSTED", start.value.message
     message = start.value.message
     assert message.startswith("start.config.train_rooms: the job needs about") and "MAX_JOB_MEMORY_MB" in message
+
+
+def test_one_door__a_wide_robot_is_checked_on_the_first_rooms_of_each_bank_not_on_200k(service):
+    """The API does not build envs: a wide robot is checked against the first FIT_ROOMS rooms of
+    each bank (a fuzzed job with 200,000 rooms held one request ~100 s carving them all); the
+    worker's env build checks every room. A robot that fits is queued, one that does not is
+    refused with how many rooms were checked."""
+    import numpy as np
+
+    from quicknav_service.jobs.limits import FIT_ROOMS
+
+    settings, jobs = service
+    many = {"env.train_rooms": 200_000, "env.test_rooms": 100_000}
+    job = jobs.submit_train(TrainJobCreate(preset="demo", overrides={**many, "env.robot_radius": 0.3}))
+    assert job.status == "queued"
+    built = sorted((settings.data_dir / "room-banks").glob("bank-*.npz"))
+    assert len(built) == 2  # the check ran, on both banks
+    for path in built:
+        with np.load(path) as bank:
+            assert int(bank["shape"][0]) == FIT_ROOMS, path.name
+    with pytest.raises(Invalid) as rest:
+        jobs.submit_train(TrainJobCreate(preset="demo", overrides={**many, "env.grid_size": 8, "env.robot_radius": 0.9}))
+    [item] = rest.value.items
+    assert item["loc"] == ["overrides", "env.robot_radius"]
+    assert f"of the first {FIT_ROOMS} of the 200,000 train rooms" in item["msg"], item["msg"]

@@ -331,3 +331,39 @@ def test_map__the_shipped_office_map_loads_and_the_oracle_drives_it(optimized):
         check_rooms(env.model_copy(update={"grid_size": 16, "room_size": 8.0}))
     result, _ = run_eval(EvalConfig(policy="oracle", env=env, episodes=48, split="test", seed=5))
     assert result["metrics"]["success_rate"] >= 0.98, result["metrics"]
+
+
+# --------------------------------------------------------------------------- a door's sample
+@pytest.mark.parametrize("rooms", ["carved", "floorplan"])
+def test_first__rooms_are_the_first_rooms_of_the_full_banks(rooms):
+    """A door that does not build the env checks a wide robot against ``first(n)`` of a source:
+    room i is drawn from its own index, so those are the full bank's first rooms (train exactly;
+    the test bank drops the train bank's layouts, which a short train bank may not hold)."""
+    env = EnvConfig(rooms=rooms, grid_size=16, room_size=8.0, train_rooms=48, test_rooms=40)
+    full, first = room_source(env), room_source(env).first(12)
+    assert (first.count("train"), first.count("test")) == (12, 12)
+    train = first.bank("train")
+    assert train.shape == (12, 16, 16) and np.array_equal(train, full.bank("train")[:12])
+    test = first.bank("test")
+    in_full = {r.tobytes() for r in full.bank("test")} | {r.tobytes() for r in full.bank("train")}
+    assert all(r.tobytes() in in_full for r in test)
+    assert room_source(env).first(64).count("train") == 48  # a bank with fewer: all of it
+
+
+def test_first__of_maps_keeps_every_map(tmp_path):
+    """A map bank repeats its maps: its first rooms are every map, however few are asked for."""
+    a, b = np.zeros((8, 8), bool), np.zeros((8, 8), bool)
+    a[3, :5] = b[:5, 4] = True
+    paths = []
+    for name, room in (("a", a), ("b", b)):
+        from PIL import Image
+
+        Image.fromarray(np.where(room, 0, 254).astype(np.uint8)).save(tmp_path / f"{name}.png")
+        paths.append(str(tmp_path / f"{name}.png"))
+    env = EnvConfig(rooms="maps", maps={"train": paths, "resolution": 1.0}, grid_size=10,
+                    room_size=10.0, train_rooms=1000, test_rooms=1000)  # fmt: skip
+    first = room_source(env).first(1)
+    assert first.count("train") == 2
+    bank = first.bank("train")
+    assert not np.array_equal(bank[0], bank[1])  # both maps
+    assert np.array_equal(bank, room_source(env).bank("train")[:2])
