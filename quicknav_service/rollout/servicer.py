@@ -188,7 +188,12 @@ class RolloutServicer(pb_grpc.RolloutServiceServicer):
         if policy_run:
             await self._stream_policy(session, req, policy_run[0], context)
             return True
-        session.env, session.groups, obs = await self._run(self._build, req)
+        try:
+            session.env, session.groups, obs = await self._run(self._build, req)
+        except ValueError as e:
+            # a room past those admission checked that the robot fits in (the door checks the
+            # first rooms of each bank, the env build every room): the Start's mistake
+            raise Refused(grpc.StatusCode.INVALID_ARGUMENT, f"start.config.{e}") from None
         session.group_steps = [0] * len(session.groups)
         from quicknav_core.env.constants import observation_bounds
 

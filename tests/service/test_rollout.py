@@ -183,6 +183,25 @@ def test_rollout__errors_are_exact_status_codes(server):
         assert rc.step(np.zeros((N, 2), np.float32)).observations.shape[0] == N
 
 
+def test_rollout__a_robot_that_fits_the_checked_rooms_but_not_a_later_one_is_invalid_argument(
+    server, monkeypatch
+):
+    """Admission checks a wide robot against the first rooms of each bank (FIT_ROOMS); the env
+    build checks every room, and a room past those is still the Start's mistake, named, not an
+    INTERNAL error. Room 6 of CONFIG's train bank has no two cells a 0.9 m robot fits in."""
+    import quicknav_service.jobs.limits as limits
+
+    monkeypatch.setattr(limits, "FIT_ROOMS", 4)
+
+    def start():
+        with RolloutClient(_target(server)) as rc:
+            rc.start(num_envs=N, config={**CONFIG, "robot_radius": 0.9})
+
+    code, msg = _code(start)
+    assert code == grpc.StatusCode.INVALID_ARGUMENT, msg
+    assert msg.startswith("start.config.robot_radius: a robot of radius 0.9 m") and "(room 6 first)" in msg, msg
+
+
 def test_rollout__hostile_starts_are_invalid_argument_not_internal(server):
     """A client's mistake is INVALID_ARGUMENT, however it is made: JSON nested 100,000 deep, a
     Struct holding NaN."""
