@@ -16,6 +16,11 @@ import math
 import numpy as np
 
 
+class RobotFitError(ValueError):
+    """A robot that fits in fewer than two cells of some room of a bank; the message starts with
+    the field that set its radius (``robot_radius`` or ``randomize.robot_radius_m``)."""
+
+
 def narrow(radius: float, cell: float) -> bool:
     """Whether the disc fits at the centre of any free cell (it is narrower than a cell)."""
     return 2.0 * radius < cell
@@ -66,16 +71,16 @@ def spawn_regions(rooms: np.ndarray, cell: float, radius: float) -> np.ndarray:
 
 
 def spawn_cells(rooms: np.ndarray, config, split: str, of: int | None = None) -> np.ndarray:
-    """(n, rows, cols) bool: where the episodes of each room of a bank start and end. A ValueError
-    names the robot's radius when some room has no two cells it fits in (``of``: the bank's size
-    when ``rooms`` are its first rooms only)."""
+    """(n, rows, cols) bool: where the episodes of each room of a bank start and end. A
+    ``RobotFitError`` names the robot's radius when some room has no two cells it fits in (``of``:
+    the bank's size when ``rooms`` are its first rooms only)."""
     radius, cell = config.spawn_radius, config.cell_size
     regions = spawn_regions(rooms, cell, radius)
     counts = regions.reshape(len(regions), -1).sum(axis=1)
     short = np.flatnonzero(counts < 2)
     if short.size:
         field = "randomize.robot_radius_m" if radius > config.robot_radius else "robot_radius"
-        raise ValueError(
+        raise RobotFitError(
             f"{field}: a robot of radius {radius:g} m fits in fewer than two cells of {short.size}"
             f" of the {_rooms_checked(len(rooms), of)} {split} rooms (room {int(short[0])} first):"
             " the disc (diameter"
@@ -92,7 +97,7 @@ def _rooms_checked(n: int, of: int | None) -> str:
 
 def check_fit(config, rooms, at_most: int | None = None) -> None:
     """For a robot wider than a cell, build the banks of ``rooms`` (a room source) and check that
-    it fits in every room (``spawn_cells``'s ValueError), before anything compiles or trains;
+    it fits in every room (``spawn_cells``'s RobotFitError), before anything compiles or trains;
     nothing to do otherwise. ``at_most``: check the first that many rooms of each bank only (a
     door that does not build the env: a service's API, which must not carve a million rooms to
     answer one request; the worker's env build checks every room and fails the job naming the

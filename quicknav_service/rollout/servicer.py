@@ -188,9 +188,11 @@ class RolloutServicer(pb_grpc.RolloutServiceServicer):
         if policy_run:
             await self._stream_policy(session, req, policy_run[0], context)
             return True
+        from quicknav_core.env.clearance import RobotFitError
+
         try:
             session.env, session.groups, obs = await self._run(self._build, req)
-        except ValueError as e:
+        except RobotFitError as e:
             # a room past those admission checked that the robot fits in (the door checks the
             # first rooms of each bank, the env build every room): the Start's mistake
             raise Refused(grpc.StatusCode.INVALID_ARGUMENT, f"start.config.{e}") from None
