@@ -236,10 +236,15 @@ def test_wait_events_wakes_on_news_and_times_out_without(store):
     # an event published while a viewer waits wakes it at once
     import threading
 
-    threading.Timer(0.2, lambda: store.publish(a.id, {"type": "progress"})).start()
+    # (the publisher is joined before the test ends: its publish never meets the next test's store)
+    publisher = threading.Timer(0.2, lambda: store.publish(a.id, {"type": "progress"}))
+    publisher.start()
     t0 = time.monotonic()
-    assert store.wait_events({a.id: 0, b.id: seq}, timeout_s=5) == {a.id}
-    assert time.monotonic() - t0 < 2.0
+    try:
+        assert store.wait_events({a.id: 0, b.id: seq}, timeout_s=5) == {a.id}
+        assert time.monotonic() - t0 < 2.0
+    finally:
+        publisher.join()
     with pytest.raises(JobNotFound):
         store.publish("0" * 32, {"type": "progress"})  # no job: nothing written
 

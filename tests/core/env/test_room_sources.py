@@ -226,7 +226,8 @@ def test_map__colour_and_alpha_pixels_are_read_as_nav2_reads_them(tmp_path, imag
     im.putdata(pixels)
     if image_mode == "P":
         im = im.convert("P", palette=Image.Palette.ADAPTIVE, colors=16)
-        seen = list(im.convert("RGB").getdata())  # the palette's colours, as map_server sees them
+        # the palette's colours, as map_server sees them (one row: a list of RGB tuples)
+        seen = [tuple(int(c) for c in px) for px in np.asarray(im.convert("RGB"))[0]]
     im.save(tmp_path / "map.png")
     (tmp_path / "map.yaml").write_text(f"image: map.png\nmode: {mode}\nresolution: 0.5\norigin: [0, 0, 0]\n"
                                        "negate: 0\noccupied_thresh: 0.65\nfree_thresh: 0.196\n")  # fmt: skip
