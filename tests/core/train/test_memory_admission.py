@@ -51,10 +51,13 @@ def test_admission__estimate_within_ten_percent_of_measured_peak(name, preset, o
     request = case_request(preset, overrides)
     # the process compiles as a worker does (every optimisation on; tests/compile_settings.py)
     est, measured = estimate(request), peak_rss(request, env=as_a_user_runs())
-    if est > 1.1 * measured:
-        # a process's peak varies from run to run: mlp-memory-1024 read 910-1003 MB in six runs on
-        # a 2-core AMD EPYC VM (XLA compiles in threads, and how their work overlaps varies). The
-        # estimate must cover the highest, so a low reading is measured once more and the higher
-        # of the two counts; a reading above the estimate is never measured again
+    for _ in range(2):
+        if est <= 1.1 * measured:
+            break
+        # a process's peak varies from run to run: mlp-memory-1024 read 910-1003 MB in six runs,
+        # lstm-1024 835 MB twice in one run against 888 MB recorded (2-core AMD EPYC VMs; XLA
+        # compiles in threads, and how their work overlaps varies). The estimate must cover the
+        # highest, so a low reading is measured again, up to twice, and the highest counts; a
+        # reading above the estimate is never measured again
         measured = max(measured, peak_rss(request, env=as_a_user_runs()))
     _check(name, est, measured)
