@@ -60,12 +60,15 @@ EVAL_RUNTIME_BYTES = 685 * MB
 # the same case reads 904-918 MB on a quiet 2-core AMD EPYC (Zen 4) VM, 884-911 MB with both
 # cores busy beside it (as the test suite's other worker keeps them; XLA's compile threads
 # overlap less), 935 MB in the recorded benchmark, so the constant sits in the middle of
-# 865-935 MB (2026-12)
+# 865-935 MB (2026-12). The MLP with the memory head's (810 MB until then) sat under its case:
+# mlp-memory-1024 read 903-937 MB on a quiet 2-core AMD EPYC (Zen 4) VM, 910-1,003 MB in CI runs on
+# a Zen 5 one (one CI run failed on 980 MB against an estimate of 876), so it moved to 885 MB,
+# where 903-1,003 MB are all within -5/+6 % (2026-12)
 TRAIN_RUNTIME_BYTES = {
     "rejax-ppo": 855 * MB,
     "rejax-sac": 1010 * MB,
     "rejax-td3": 915 * MB,
-    "recurrent-mlp": 810 * MB,
+    "recurrent-mlp": 885 * MB,
     "recurrent-lstm": 860 * MB,
     "recurrent-gtrxl": 1110 * MB,
 }
