@@ -53,10 +53,10 @@ def pytest_xdist_auto_num_workers(config):
     """``-n auto`` (pyproject's addopts): one xdist worker more than this machine's cores for a run
     that holds the fast suite, whose tests wait on servers, browsers and subprocesses (on 2 cores
     with two workers the cores stood idle 13 % of its run; a third worker took it from 441-457 s
-    to 406 s, 2-core AMD EPYC VM), one per core for the slow suite alone, whose tests are
-    processes that keep the cores busy themselves (a third worker there gave nothing: 503 -> 518
-    s). ``--maxprocesses`` still caps it; PYTEST_XDIST_AUTO_NUM_WORKERS overrides it, as xdist's
-    own rule does."""
+    to 406 s, 2-core AMD EPYC VM; a fourth lost time: 410 -> 445 s, 2-core Intel Xeon VM), one per
+    core for the slow suite alone, whose tests are processes that keep the cores busy themselves
+    (a third worker there gave nothing: 503 -> 518 s). ``--maxprocesses`` still caps it;
+    PYTEST_XDIST_AUTO_NUM_WORKERS overrides it, as xdist's own rule does."""
     if os.environ.get("PYTEST_XDIST_AUTO_NUM_WORKERS"):
         return None  # xdist's own rule reads it
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
