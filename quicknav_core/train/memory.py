@@ -46,30 +46,15 @@ POLICY_MAX_ROWS = 4096  # robots one Policy stream may act for (``load.rows``)
 # plans weigh most, moved least), so the constant sits where all three are within -3/+10 %
 EVAL_RUNTIME_BYTES = 685 * MB
 # Python, JAX, XLA and the compiled programs of a training run, by trainer and network: the peak
-# of compiling them differs (GTrXL's attention programs take the most). Measured on this project's
-# CPU VM with `python -m quicknav_core.bench.memory` (peak RSS of a process that trains a few
-# chunks and writes checkpoints, as a worker does, compiling every program), at two sizes each;
-# README has the table. The same case measures up to 6 % apart from run to run (lstm-1024: 888
-# and 918 MB; mlp-memory-1024: 825-865 MB), so each sits near the middle of its measurements.
-# Re-measured in 2026-11 once the processes stopped importing seaborn, pandas and scipy.stats
-# (``deferred_imports``): 60-150 MB lower per case than before (2-core AMD EPYC VM). Before that,
-# GTrXL at 2,048 envs measured 1,336 MB on that VM and 1,377 MB on an Intel Xeon VM, and PPO with
-# the MLP 7-12 % higher on the Intel VM than on the AMD one: the GTrXL constant keeps a margin for
-# that (unmeasured since). PPO's kept one too (885 MB) until a CI run (2 cores; what it printed
-# does not name its CPU) read ppo-mlp-2048 at 865 MB, twice, and the estimate sat 11 % above it:
-# the same case reads 904-918 MB on a quiet 2-core AMD EPYC (Zen 4) VM, 884-911 MB with both
-# cores busy beside it (as the test suite's other worker keeps them; XLA's compile threads
-# overlap less), 935 MB in the recorded benchmark, so the constant sits in the middle of
-# 865-935 MB (2026-12). The MLP with the memory head's (810 MB until then) sat under its case:
-# mlp-memory-1024 read 903-937 MB on a quiet 2-core AMD EPYC (Zen 4) VM, 910-1,003 MB in CI runs on
-# a Zen 5 one (one CI run failed on 980 MB against an estimate of 876), so it moved to 885 MB;
-# the next CI run, on the Zen 4 VM with both cores busy, read it at 846 MB three times against
-# that estimate of 951 (ratio 1.12), so it sits at 855 MB, where the estimate (921 MB) is within
-# -9/+9 % of every reading seen, 846-1,003 MB (2026-12). GTrXL's moved 1,110 -> 1,150 MB then
-# too: gtrxl-2048 read 1,278-1,327 MB on that Zen 4 VM, 7 % over its estimate of 1,236. The
-# LSTM's 860 -> 840 MB then as well: lstm-1024 read 835 MB twice in one CI run and 898-944 MB
-# on the quiet Zen 4 VM, and its estimate of 924 sat 11 % above the lowest; at 904 MB it is
-# within -4/+8 % of all of them
+# of compiling them differs (GTrXL's attention programs take the most). Measured with
+# `python -m quicknav_core.bench.memory` (peak RSS of a process that trains a few chunks and writes
+# checkpoints, as a worker does, compiling every program), at two sizes each; README has the table.
+# One case's peak reads up to 9 % either side of its middle, by machine and by load (XLA's compile
+# threads overlap less when the other core is busy), so each constant puts its estimate near the
+# middle of what its larger case has read on 2-core AMD EPYC VMs (Zen 4 and Zen 5), quiet and in
+# CI: ppo-mlp-2048 865-950 MB (estimate 927), mlp-memory-1024 846-1,003 (921), lstm-1024 835-944
+# (904); gtrxl-2048 read 1,278-1,327 (1,276, at the low end of its range, 4 % under its top).
+# CHANGELOG says when and why each moved
 TRAIN_RUNTIME_BYTES = {
     "rejax-ppo": 855 * MB,
     "rejax-sac": 1010 * MB,
