@@ -133,7 +133,7 @@ def assert_policy_folder(folder, held_out: float | None) -> None:
         assert doc["held_out"]["success_rate"] >= held_out, doc["held_out"]
 
 
-@pytest.mark.slow  # trains the demo twice (CLI, then curl) and evaluates: ~1-2 min on 2 cores
+@pytest.mark.slow  # trains the demo (CLI; curl a shorter run of it) and evaluates: ~1-2 min on 2 cores
 def test_journey__quick_start(runner, service):
     runner.attach(service())
     evaluated = train_id = None

@@ -42,13 +42,16 @@ def data_dir(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def server(data_dir):
+def server(request, data_dir):
     port = free_port()
     # the workers do not export trained policies (the test run's default, conftest.py): the job
-    # page's policy download is the seeded trained demo's, exported once per test run
-    # its worker trains the demo preset (the live curve here, a map's training in the maps test):
-    # compiled as a user's machine compiles, every optimisation on
-    proc = quicknav_process(["serve", "--port", str(port), "--no-grpc"], as_a_user=True,
+    # page's policy download is the seeded trained demo's, exported once per test run.
+    # This module's jobs are short (a few chunks, two tiny trials, evaluations), so its worker
+    # compiles as the test run does (tests/compile_settings.py; the module's child CPU 72.6 ->
+    # 61.3 s, 2-core Intel Xeon VM); a module whose worker trains to a target
+    # (test_web_maps_browser.py) sets SERVER_AS_A_USER and compiles as a user's machine does
+    as_a_user = getattr(request.module, "SERVER_AS_A_USER", False)
+    proc = quicknav_process(["serve", "--port", str(port), "--no-grpc"], as_a_user=as_a_user,
                             QUICKNAV_DATA_DIR=str(data_dir), QUICKNAV_API_TOKEN=TOKEN)  # fmt: skip
     url = f"http://127.0.0.1:{port}"
     try:

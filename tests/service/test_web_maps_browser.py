@@ -21,6 +21,10 @@ from tests.service.test_web_browser import (  # noqa: F401 (fixtures)
     success_in_table,
 )
 
+# the server's worker trains the demo preset to success on the map and evaluates the building
+# policy: it compiles as a user's machine compiles, every optimisation on (the `server` fixture)
+SERVER_AS_A_USER = True
+
 
 @pytest.fixture(scope="module")
 def map_files(tmp_path_factory):
