@@ -50,10 +50,10 @@ EVAL_RUNTIME_BYTES = 685 * MB
 # `python -m quicknav_core.bench.memory` (peak RSS of a process that trains a few chunks and writes
 # checkpoints, as a worker does, compiling every program), at two sizes each; README has the table.
 # One case's peak reads up to 9 % either side of its middle, by machine and by load (XLA's compile
-# threads overlap less when the other core is busy), so each constant puts its estimate near the
-# middle of what its larger case has read on 2-core AMD EPYC VMs (Zen 4 and Zen 5), quiet and in
-# CI: ppo-mlp-2048 865-950 MB (estimate 927), mlp-memory-1024 846-1,003 (921), lstm-1024 835-944
-# (904); gtrxl-2048 read 1,278-1,327 (1,276, at the low end of its range, 4 % under its top).
+# threads overlap less when the other core is busy), so each constant puts its larger case's
+# estimate inside what that case has read on 2-core AMD EPYC VMs (Zen 4 and Zen 5), quiet and in
+# CI: ppo-mlp-2048 865-935 MB (estimate 927), mlp-memory-1024 846-1,003 (921), lstm-1024 835-944
+# (904); gtrxl-2048 1,278-1,327 (1,276: just under the lowest reading, 4 % under the highest).
 # CHANGELOG says when and why each moved
 TRAIN_RUNTIME_BYTES = {
     "rejax-ppo": 855 * MB,

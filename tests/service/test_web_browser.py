@@ -187,7 +187,7 @@ def test_browser__submitted_job_grows_its_curve_and_succeeds(server, page, shots
     page.goto(server + "/ui/submit")
     page.wait_for_selector("#submit-form")
     page.select_option("#preset", "demo")
-    # four chunks of the demo preset, each long enough (24 updates, about two seconds) for the
+    # four chunks of the demo preset, each long enough (24 updates, two seconds or more) for the
     # page to draw it while it watches (the policy that learned, for the tests after this one, is
     # the test run's trained demo)
     steps = 4 * 98_304
