@@ -6,8 +6,11 @@ At the end it prints one row per test module (the costliest first): wall seconds
 the test process, CPU of the child processes it reaped (CLI commands, workers, servers; a module
 fixture's server is counted where its teardown reaps it), and JAX's share of the test process: XLA
 compiles, the seconds of XLA's step (compiling, or loading from JAX's persistent cache), the seconds
-tracing and lowering to MLIR (paid on a cache hit too), and the programs loaded from that cache. Every test's row is written, as JSON lines, to the
-folder it names (``QUICKNAV_CPU_PROFILE``, a temporary folder if unset), one file per process.
+tracing and lowering to MLIR (paid on a cache hit too), and the programs loaded from that cache.
+Then the costliest programs by JAX's name for them (``jit(run)``: the evaluation's episode runner,
+``jit(<lambda>)``: every jitted lambda), summed over the test processes. Every test's row is
+written, as JSON lines, to the folder it names (``QUICKNAV_CPU_PROFILE``, a temporary folder if
+unset), one file per process, and each process's seconds per program beside it.
 
 The modules' wall seconds, the order xdist is given them in (``tests/conftest.py``), come from such a
 run of both suites: ``python -m tests.cpu_profile FOLDER`` writes them to
@@ -47,12 +50,17 @@ class Recorder:
         import jax.monitoring as monitoring
 
         self.totals: dict[str, float] = defaultdict(float)
+        # per program name (JAX's ``fun_name``): [XLA step s, tracing s, lowering s, XLA steps]
+        self.programs: dict[str, list[float]] = defaultdict(lambda: [0.0, 0.0, 0.0, 0])
         monitoring.register_event_duration_secs_listener(self._duration)
         monitoring.register_event_listener(self._event)
 
-    def _duration(self, event: str, duration: float, **_) -> None:
+    def _duration(self, event: str, duration: float, fun_name: str = "?", **_) -> None:
         if event in _EVENTS:
             self.totals[_EVENTS[event]] += duration
+            per = self.programs[fun_name]
+            per[("compile_s", "trace_s", "lower_s").index(_EVENTS[event])] += duration
+            per[3] += event == "/jax/core/compile/backend_compile_duration"
             # JAX times its XLA step with a persistent cache read inside: a hit counts here too
             self.totals["programs"] += event == "/jax/core/compile/backend_compile_duration"
 
@@ -114,6 +122,23 @@ def pytest_runtest_protocol(item, nextitem):
         out.write(json.dumps(row) + "\n")
 
 
+def pytest_sessionfinish(session) -> None:
+    """This process's seconds per program name, for the summary's list of the costliest."""
+    if _recorder is not None:
+        out = Path(os.environ[FOLDER]) / f"{os.getpid()}.programs.json"
+        out.write_text(json.dumps(dict(_recorder.programs)))
+
+
+def programs(folder: Path) -> list[tuple[str, list[float]]]:
+    """Every test process's seconds per program name in ``folder``, summed, the costliest first:
+    (name, [XLA step s, tracing s, lowering s, XLA steps])."""
+    total: dict[str, list[float]] = defaultdict(lambda: [0.0, 0.0, 0.0, 0])
+    for path in folder.glob("*.programs.json"):
+        for name, figures in json.loads(path.read_text()).items():
+            total[name] = [a + b for a, b in zip(total[name], figures, strict=True)]
+    return sorted(total.items(), key=lambda kv: -sum(kv[1][:3]))
+
+
 def pytest_terminal_summary(terminalreporter) -> None:
     if hasattr(terminalreporter.config, "workerinput"):
         return  # an xdist worker: the controller prints
@@ -132,6 +157,11 @@ def pytest_terminal_summary(terminalreporter) -> None:
     write(f"{'all':58s} {total['wall_s']:6.1f} {total['cpu_s']:6.1f} {total['children_s']:6.1f}"
           f" {total['compiles']:6.0f} {total['compile_s']:6.1f} {total['trace_s']:6.1f}"
           f" {total['lower_s']:6.1f} {total['cache_hits']:5.0f}")  # fmt: skip
+    write("")
+    write("The costliest programs by name (test processes; XLA's step counts a cache load too)")
+    write(f"{'program':58s} {'XLA s':>6s} {'trace':>6s} {'lower':>6s} {'steps':>6s}")
+    for name, (xla, trace, lower, steps) in programs(folder)[:30]:
+        write(f"{name[-58:]:58s} {xla:6.1f} {trace:6.1f} {lower:6.1f} {steps:6.0f}")
 
 
 MODULE_SECONDS = Path(__file__).with_name("module_seconds.json")

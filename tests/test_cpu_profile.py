@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tests.cpu_profile import COLUMNS, MODULE_SECONDS, Recorder, module_seconds, summary
+from tests.cpu_profile import COLUMNS, MODULE_SECONDS, Recorder, module_seconds, programs, summary
 
 
 def test_cpu_profile__counts_a_compile_and_its_cpu():
@@ -23,6 +23,17 @@ def test_cpu_profile__counts_a_compile_and_its_cpu():
     with recorder.measure(quiet):  # nothing compiled: nothing counted
         sum(range(1000))
     assert quiet["compiles"] == quiet["cache_hits"] == 0 and quiet["compile_s"] == 0
+    # and by program name: XLA's step, tracing and lowering of the jitted lambda
+    # (JAX names the traced function "<lambda>", the lowered and compiled program "jit(<lambda>)")
+    xla, _, lower, steps = recorder.programs["jit(<lambda>)"]
+    assert steps == 1 and xla > 0 and lower > 0 and recorder.programs["<lambda>"][1] == row["trace_s"]
+
+
+def test_cpu_profile__sums_each_programs_seconds_over_the_processes_costliest_first(tmp_path):
+    (tmp_path / "1.programs.json").write_text(json.dumps({"jit(run)": [4.0, 0.0, 1.0, 2], "jit(add)": [0.1, 0.0, 0.1, 9]}))
+    (tmp_path / "2.programs.json").write_text(json.dumps({"jit(run)": [2.0, 0.0, 0.5, 1], "run": [0.0, 3.0, 0.0, 0]}))
+    assert programs(tmp_path) == [("jit(run)", [6.0, 0.0, 1.5, 3]), ("run", [0.0, 3.0, 0.0, 0]),
+                                  ("jit(add)", [0.1, 0.0, 0.1, 9])]  # fmt: skip
 
 
 def test_cpu_profile__sums_every_process_by_module_costliest_first(tmp_path):
