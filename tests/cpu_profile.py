@@ -58,6 +58,10 @@ class Recorder:
     def _duration(self, event: str, duration: float, fun_name: str = "?", **_) -> None:
         if event in _EVENTS:
             self.totals[_EVENTS[event]] += duration
+            # JAX names a trace by the function ("run") and its lowering and XLA step by the
+            # program ("jit(run)"): one row per program
+            if event == "/jax/core/compile/jaxpr_trace_duration" and not fun_name.startswith("jit("):
+                fun_name = f"jit({fun_name})"
             per = self.programs[fun_name]
             per[("compile_s", "trace_s", "lower_s").index(_EVENTS[event])] += duration
             per[3] += event == "/jax/core/compile/backend_compile_duration"
